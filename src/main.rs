@@ -1,1 +1,5 @@
-fn main() {}
+//! The `pipe` command.
+
+fn main() -> std::process::ExitCode {
+    pipe::cli::main(std::env::args_os(), pipe::stages::builtin())
+}

@@ -1,0 +1,211 @@
+//! The command line: parse, call the library, print. Exit codes: 0 success, 1 failure,
+//! 2 invalid pipeline file or arguments, 130 interrupted.
+
+use std::ffi::OsString;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use clap::{Parser, Subcommand};
+
+use crate::pipeline::progress::Reporter;
+use crate::pipeline::runner::{RunError, RunOptions, StageState, Workspace, short};
+use crate::pipeline::spec::{self, Overrides, Preset};
+use crate::pipeline::stage::Registry;
+
+/// pipe: multi-view videos of a deforming object → an editable, physics-driven 3D scene.
+#[derive(Debug, Parser)]
+#[command(name = "pipe", version, about, long_about = None)]
+struct Cli {
+    /// Work directory holding the cache (`.pipe/`); default: the current directory.
+    #[arg(long, global = true, value_name = "DIR")]
+    workdir: Option<PathBuf>,
+    /// Only stage start/finish lines, no progress bars.
+    #[arg(long, short, global = true)]
+    quiet: bool,
+    /// Worker threads for the kernels (results do not depend on it); default: all cores.
+    #[arg(long, global = true, value_name = "N")]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, clap::Args)]
+struct PipelineArgs {
+    /// The pipeline file (YAML).
+    file: PathBuf,
+    /// Use this preset instead of the file's (draft | standard | paper).
+    #[arg(long, value_parser = parse_preset)]
+    preset: Option<Preset>,
+    /// Override a parameter: `--set stage.key=value` (repeatable; the value is YAML).
+    #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
+    sets: Vec<String>,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Run every stage that is not cached.
+    Run {
+        #[command(flatten)]
+        pipeline: PipelineArgs,
+        /// Re-run this stage and everything downstream of it, even if cached.
+        #[arg(long, value_name = "STAGE")]
+        from: Option<String>,
+        /// Stop after this stage (run only it and what it needs).
+        #[arg(long, value_name = "STAGE")]
+        until: Option<String>,
+        /// Re-run this stage even if cached (repeatable).
+        #[arg(long, value_name = "STAGE")]
+        force: Vec<String>,
+    },
+    /// One line per stage: cached, stale (and why) or not run.
+    Status {
+        #[command(flatten)]
+        pipeline: PipelineArgs,
+    },
+    /// Remove cache entries that no pipeline file references.
+    Clean {
+        /// Remove every cache entry.
+        #[arg(long)]
+        all: bool,
+    },
+    /// Print the JSON Schema of pipeline files (for editors and validators).
+    Schema,
+}
+
+fn parse_preset(s: &str) -> Result<Preset, String> {
+    Preset::parse(s).ok_or_else(|| format!("unknown preset `{s}`; expected draft, standard or paper"))
+}
+
+static INTERRUPTED: AtomicBool = AtomicBool::new(false);
+
+fn install_interrupt_handler() {
+    // A second Ctrl-C ends the process at once; the first asks stages to stop cleanly.
+    let _ = ctrlc::set_handler(|| {
+        if INTERRUPTED.swap(true, Ordering::SeqCst) {
+            eprintln!("pipe: interrupted again, exiting now");
+            std::process::exit(130);
+        }
+        eprintln!("pipe: interrupt received, stopping after the current step (Ctrl-C again to quit now)");
+    });
+}
+
+/// Run the CLI with `args` against the stages of `registry`.
+pub fn main(args: impl IntoIterator<Item = impl Into<OsString> + Clone>, registry: Registry) -> ExitCode {
+    let cli = match Cli::try_parse_from(args) {
+        Ok(c) => c,
+        Err(e) => {
+            let _ = e.print();
+            return ExitCode::from(if e.use_stderr() { 2 } else { 0 });
+        }
+    };
+    if let Some(n) = cli.threads {
+        let _ = rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build_global();
+    }
+    let workdir = cli.workdir.clone().unwrap_or_else(|| PathBuf::from("."));
+    let ws = Workspace::new(&workdir);
+    match execute(&cli, &ws, &registry) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e}");
+            let mut src = std::error::Error::source(&e);
+            while let Some(s) = src {
+                if !e.to_string().contains(&s.to_string()) {
+                    eprintln!("  caused by: {s}");
+                }
+                src = s.source();
+            }
+            ExitCode::from(match e {
+                RunError::Spec(_) | RunError::Selection(_) => 2,
+                RunError::Interrupted(_) => 130,
+                _ => 1,
+            })
+        }
+    }
+}
+
+fn load(args: &PipelineArgs, registry: &Registry) -> Result<spec::Pipeline, RunError> {
+    let overrides = Overrides {
+        preset: args.preset,
+        sets: args.sets.clone(),
+    };
+    Ok(spec::load(&args.file, registry, &overrides)?)
+}
+
+fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunError> {
+    match &cli.command {
+        Command::Run {
+            pipeline,
+            from,
+            until,
+            force,
+        } => {
+            let p = load(pipeline, registry)?;
+            install_interrupt_handler();
+            let reporter = Reporter::auto(cli.quiet);
+            let command = std::env::args().collect::<Vec<_>>().join(" ");
+            let options = RunOptions {
+                from: from.clone(),
+                until: until.clone(),
+                force: force.clone(),
+            };
+            let report = ws.run(&p, registry, &options, &reporter, &INTERRUPTED, &command)?;
+            let ran = report.executed();
+            println!(
+                "{}: {} stage(s) ran, {} cached; outputs in {}",
+                p.name,
+                ran.len(),
+                report
+                    .stages
+                    .iter()
+                    .filter(|(_, _, o)| *o == crate::pipeline::runner::Outcome::Cached)
+                    .count(),
+                ws.store.cache_dir().display()
+            );
+            Ok(())
+        }
+        Command::Status { pipeline } => {
+            let p = load(pipeline, registry)?;
+            let (_, planned) = ws.plan(&p, registry)?;
+            println!(
+                "{} ({}), preset {}, cache {}",
+                p.name,
+                p.file.display(),
+                p.preset.name(),
+                ws.store.cache_dir().display()
+            );
+            let width = planned.iter().map(|s| s.name.len()).max().unwrap_or(0);
+            for s in &planned {
+                let line = match &s.state {
+                    StageState::Cached(m) => format!(
+                        "cached   {}  ran in {:.2} s, {}",
+                        short(&s.key),
+                        m.wall_s,
+                        display_dir(&ws.store.entry_dir(&s.name, &s.key))
+                    ),
+                    StageState::Stale(reasons) => format!("stale    {}", reasons.join("; ")),
+                    StageState::NotRun => "not run".to_string(),
+                };
+                println!("  {:width$}  {line}", s.name);
+            }
+            Ok(())
+        }
+        Command::Clean { all } => {
+            let removed = ws.clean(registry, *all)?;
+            println!("removed {} cache entr{}", removed.len(), if removed.len() == 1 { "y" } else { "ies" });
+            for r in removed {
+                println!("  {r}");
+            }
+            Ok(())
+        }
+        Command::Schema => {
+            let s = spec::json_schema(registry);
+            println!("{}", serde_json::to_string_pretty(&s).expect("schema serialises"));
+            Ok(())
+        }
+    }
+}
+
+fn display_dir(p: &Path) -> String {
+    p.display().to_string()
+}

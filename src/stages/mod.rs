@@ -1,0 +1,11 @@
+//! The stages: one file per stage kind, each thin (read inputs, call kernels, write outputs).
+//! They register here; the runner knows them only through [`Registry`].
+
+pub mod ingest;
+
+use crate::pipeline::stage::Registry;
+
+/// Every stage kind the `pipe` binary knows, in natural pipeline order.
+pub fn builtin() -> Registry {
+    Registry::new().with(ingest::Ingest)
+}
