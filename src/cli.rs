@@ -92,11 +92,16 @@ fn install_interrupt_handler() {
 
 /// Run the CLI with `args` against the stages of `registry`.
 pub fn main(args: impl IntoIterator<Item = impl Into<OsString> + Clone>, registry: Registry) -> ExitCode {
+    ExitCode::from(run(args, registry))
+}
+
+/// Like [`main`], returning the exit status as a number.
+pub fn run(args: impl IntoIterator<Item = impl Into<OsString> + Clone>, registry: Registry) -> u8 {
     let cli = match Cli::try_parse_from(args) {
         Ok(c) => c,
         Err(e) => {
             let _ = e.print();
-            return ExitCode::from(if e.use_stderr() { 2 } else { 0 });
+            return if e.use_stderr() { 2 } else { 0 };
         }
     };
     if let Some(n) = cli.threads {
@@ -105,7 +110,7 @@ pub fn main(args: impl IntoIterator<Item = impl Into<OsString> + Clone>, registr
     let workdir = cli.workdir.clone().unwrap_or_else(|| PathBuf::from("."));
     let ws = Workspace::new(&workdir);
     match execute(&cli, &ws, &registry) {
-        Ok(()) => ExitCode::SUCCESS,
+        Ok(()) => 0,
         Err(e) => {
             eprintln!("error: {e}");
             let mut src = std::error::Error::source(&e);
@@ -115,11 +120,11 @@ pub fn main(args: impl IntoIterator<Item = impl Into<OsString> + Clone>, registr
                 }
                 src = s.source();
             }
-            ExitCode::from(match e {
+            match e {
                 RunError::Spec(_) | RunError::Selection(_) => 2,
                 RunError::Interrupted(_) => 130,
                 _ => 1,
-            })
+            }
         }
     }
 }

@@ -46,15 +46,26 @@ impl KeyMaterial {
     /// The cache key: blake3 of the canonical encoding, hex.
     pub fn key(&self) -> String {
         let v = serde_json::to_value(self).expect("key material is plain data");
+        debug_assert!(v.is_object());
         blake3::hash(canonical_json(&v).as_bytes()).to_hex().to_string()
     }
 }
 
 /// Canonical JSON text: object keys sorted, no whitespace, floats in shortest round-trip form.
 pub fn canonical_json(v: &Value) -> String {
-    // serde_json's Map is a BTreeMap (no `preserve_order`), so keys come out sorted, and it
-    // prints floats with ryu (shortest round-trip).
-    serde_json::to_string(v).expect("a Value always serialises")
+    fn sorted(v: &Value) -> Value {
+        match v {
+            Value::Object(m) => {
+                let mut keys: Vec<&String> = m.keys().collect();
+                keys.sort();
+                Value::Object(keys.into_iter().map(|k| (k.clone(), sorted(&m[k]))).collect())
+            }
+            Value::Array(a) => Value::Array(a.iter().map(sorted).collect()),
+            other => other.clone(),
+        }
+    }
+    // serde_json prints floats with ryu: the shortest text that round-trips.
+    serde_json::to_string(&sorted(v)).expect("a Value always serialises")
 }
 
 /// One output file of an entry.

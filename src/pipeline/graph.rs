@@ -112,6 +112,11 @@ fn find_cycle(remaining: &[String], upstream: &BTreeMap<String, Vec<String>>) ->
         if let Some(i) = path.iter().position(|p| *p == next) {
             let mut cycle: Vec<String> = path[i..].to_vec();
             cycle.reverse();
+            // Start at the stage that comes first in the file.
+            let first = (0..cycle.len())
+                .min_by_key(|&k| remaining.iter().position(|r| *r == cycle[k]))
+                .unwrap_or(0);
+            cycle.rotate_left(first);
             cycle.push(cycle[0].clone());
             return cycle;
         }

@@ -449,7 +449,10 @@ impl Ctx {
             .map(|s| format!(" (from --set {})", s.raw));
         if let Some(rest) = e.message.strip_prefix("unknown field `") {
             let key = rest.split('`').next().unwrap_or_default();
-            let parent = full.clone();
+            let parent = full
+                .strip_suffix(&format!(".{key}"))
+                .map(str::to_string)
+                .unwrap_or_else(|| full.clone());
             let mut err = self.unknown_key(key, &parent, valid);
             if let Some(o) = origin {
                 err.message.push_str(&o);

@@ -33,11 +33,14 @@ pub struct Positions {
 }
 
 impl Positions {
-    /// Position of the value at `path` (falls back to the key, then to the nearest parent).
+    /// Position of the value at `path` (falls back to its key, then to the nearest parent's key).
     pub fn value(&self, path: &str) -> Option<Position> {
+        if let Some(pos) = self.values.get(path) {
+            return Some(*pos);
+        }
         let mut p = path.to_string();
         loop {
-            if let Some(pos) = self.values.get(&p).or_else(|| self.keys.get(&p)) {
+            if let Some(pos) = self.keys.get(&p).or_else(|| self.values.get(&p)) {
                 return Some(*pos);
             }
             match parent_path(&p) {

@@ -1,0 +1,7 @@
+//! Integration tests of the `pipe` library and CLI (one test binary, one module per area).
+
+mod ingest;
+mod runner;
+mod spec_errors;
+mod support;
+mod tables;
