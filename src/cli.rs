@@ -74,7 +74,8 @@ enum Command {
 }
 
 fn parse_preset(s: &str) -> Result<Preset, String> {
-    Preset::parse(s).ok_or_else(|| format!("unknown preset `{s}`; expected draft, standard or paper"))
+    Preset::parse(s)
+        .ok_or_else(|| format!("unknown preset `{s}`; expected draft, standard or paper"))
 }
 
 static INTERRUPTED: AtomicBool = AtomicBool::new(false);
@@ -86,12 +87,17 @@ fn install_interrupt_handler() {
             eprintln!("pipe: interrupted again, exiting now");
             std::process::exit(130);
         }
-        eprintln!("pipe: interrupt received, stopping after the current step (Ctrl-C again to quit now)");
+        eprintln!(
+            "pipe: interrupt received, stopping after the current step (Ctrl-C again to quit now)"
+        );
     });
 }
 
 /// Run the CLI with `args` against the stages of `registry`.
-pub fn main(args: impl IntoIterator<Item = impl Into<OsString> + Clone>, registry: Registry) -> ExitCode {
+pub fn main(
+    args: impl IntoIterator<Item = impl Into<OsString> + Clone>,
+    registry: Registry,
+) -> ExitCode {
     ExitCode::from(run(args, registry))
 }
 
@@ -105,7 +111,9 @@ pub fn run(args: impl IntoIterator<Item = impl Into<OsString> + Clone>, registry
         }
     };
     if let Some(n) = cli.threads {
-        let _ = rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build_global();
+        let _ = rayon::ThreadPoolBuilder::new()
+            .num_threads(n.max(1))
+            .build_global();
     }
     let workdir = cli.workdir.clone().unwrap_or_else(|| PathBuf::from("."));
     let ws = Workspace::new(&workdir);
@@ -197,7 +205,11 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
         }
         Command::Clean { all } => {
             let removed = ws.clean(registry, *all)?;
-            println!("removed {} cache entr{}", removed.len(), if removed.len() == 1 { "y" } else { "ies" });
+            println!(
+                "removed {} cache entr{}",
+                removed.len(),
+                if removed.len() == 1 { "y" } else { "ies" }
+            );
             for r in removed {
                 println!("  {r}");
             }
@@ -205,7 +217,10 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
         }
         Command::Schema => {
             let s = spec::json_schema(registry);
-            println!("{}", serde_json::to_string_pretty(&s).expect("schema serialises"));
+            println!(
+                "{}",
+                serde_json::to_string_pretty(&s).expect("schema serialises")
+            );
             Ok(())
         }
     }

@@ -13,7 +13,10 @@ use clap::{Parser, Subcommand};
 use serde_json::Value;
 
 #[derive(Debug, Parser)]
-#[command(name = "datasets-tools", about = "Make and reshape scenes in the PAC-NeRF layout")]
+#[command(
+    name = "datasets-tools",
+    about = "Make and reshape scenes in the PAC-NeRF layout"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -52,7 +55,11 @@ fn main() -> Result<()> {
 }
 
 fn parse_name(name: &str) -> Option<(i64, i64)> {
-    let stem = name.rsplit('/').next()?.strip_prefix("r_")?.strip_suffix(".png")?;
+    let stem = name
+        .rsplit('/')
+        .next()?
+        .strip_prefix("r_")?
+        .strip_suffix(".png")?;
     let (a, b) = stem.split_once('_')?;
     Some((a.parse().ok()?, b.parse().ok()?))
 }
@@ -62,20 +69,32 @@ fn downscale(src: &Path, dst: &Path, factor: u32, frames: &[i64], views: &[i64])
         bail!("--factor must be at least 1");
     }
     let json_path = src.join("all_data.json");
-    let entries: Vec<Value> = serde_json::from_slice(&fs::read(&json_path).with_context(|| format!("reading {}", json_path.display()))?)
-        .with_context(|| format!("parsing {}", json_path.display()))?;
+    let entries: Vec<Value> = serde_json::from_slice(
+        &fs::read(&json_path).with_context(|| format!("reading {}", json_path.display()))?,
+    )
+    .with_context(|| format!("parsing {}", json_path.display()))?;
     fs::create_dir_all(dst.join("data"))?;
     let mut kept = Vec::new();
     for mut e in entries {
-        let file = e["file_path"].as_str().context("entry without file_path")?.to_string();
-        let (view, frame) = parse_name(&file).with_context(|| format!("unexpected file name {file}"))?;
-        if (!views.is_empty() && !views.contains(&view)) || (frame >= 0 && !frames.is_empty() && !frames.contains(&frame)) {
+        let file = e["file_path"]
+            .as_str()
+            .context("entry without file_path")?
+            .to_string();
+        let (view, frame) =
+            parse_name(&file).with_context(|| format!("unexpected file name {file}"))?;
+        if (!views.is_empty() && !views.contains(&view))
+            || (frame >= 0 && !frames.is_empty() && !frames.contains(&frame))
+        {
             continue;
         }
         let rel = file.trim_start_matches("./");
-        let img = image::open(src.join(rel)).with_context(|| format!("reading {}", src.join(rel).display()))?.into_rgb8();
+        let img = image::open(src.join(rel))
+            .with_context(|| format!("reading {}", src.join(rel).display()))?
+            .into_rgb8();
         let small = box_filter_rgb(&img, factor);
-        small.save(dst.join(rel)).with_context(|| format!("writing {}", dst.join(rel).display()))?;
+        small
+            .save(dst.join(rel))
+            .with_context(|| format!("writing {}", dst.join(rel).display()))?;
         let k = e["intrinsic"].as_array_mut().context("intrinsic")?;
         for (r, c) in [(0, 0), (0, 2), (1, 1), (1, 2)] {
             let v = k[r][c].as_f64().context("intrinsic value")?;
@@ -86,7 +105,8 @@ fn downscale(src: &Path, dst: &Path, factor: u32, frames: &[i64], views: &[i64])
             if m.exists() {
                 fs::create_dir_all(dst.join("gt/masks"))?;
                 let g = image::open(&m)?.into_luma8();
-                box_filter_luma(&g, factor).save(dst.join("gt/masks").join(format!("m_{view}_{frame}.png")))?;
+                box_filter_luma(&g, factor)
+                    .save(dst.join("gt/masks").join(format!("m_{view}_{frame}.png")))?;
             }
         }
         kept.push(e);
@@ -94,7 +114,10 @@ fn downscale(src: &Path, dst: &Path, factor: u32, frames: &[i64], views: &[i64])
     if kept.is_empty() {
         bail!("no image matched --frames/--views");
     }
-    fs::write(dst.join("all_data.json"), serde_json::to_string_pretty(&kept)?)?;
+    fs::write(
+        dst.join("all_data.json"),
+        serde_json::to_string_pretty(&kept)?,
+    )?;
     let params = src.join("gt/params.json");
     if params.exists() {
         fs::create_dir_all(dst.join("gt"))?;

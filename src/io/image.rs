@@ -76,7 +76,13 @@ fn encode_err(path: &Path) -> impl Fn(String) -> ImageError + '_ {
 
 /// Write an RGB8 PNG atomically.
 pub fn write_rgb8(path: &Path, img: &Rgb8) -> Result<(), ImageError> {
-    write_png(path, img.width, img.height, &img.data, image::ExtendedColorType::Rgb8)
+    write_png(
+        path,
+        img.width,
+        img.height,
+        &img.data,
+        image::ExtendedColorType::Rgb8,
+    )
 }
 
 /// Write an 8-bit grey PNG atomically.

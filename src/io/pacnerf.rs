@@ -101,10 +101,11 @@ pub fn read_scene(root: &Path) -> Result<PacnerfScene, PacnerfError> {
         message: e.to_string(),
     })?;
     let de = &mut serde_json::Deserializer::from_str(&text);
-    let raw: Vec<RawEntry> = serde_path_to_error::deserialize(de).map_err(|e| PacnerfError::Json {
-        path: path.clone(),
-        message: format!("at {}: {}", e.path(), e.inner()),
-    })?;
+    let raw: Vec<RawEntry> =
+        serde_path_to_error::deserialize(de).map_err(|e| PacnerfError::Json {
+            path: path.clone(),
+            message: format!("at {}: {}", e.path(), e.inner()),
+        })?;
     if raw.is_empty() {
         return Err(PacnerfError::Layout {
             path,
@@ -144,11 +145,20 @@ pub fn read_scene(root: &Path) -> Result<PacnerfScene, PacnerfError> {
         };
         if frame < 0 {
             if plates.insert(view, img).is_some() {
-                return Err(bad("file_path", format!("camera {view} has two background plates")));
+                return Err(bad(
+                    "file_path",
+                    format!("camera {view} has two background plates"),
+                ));
             }
         } else {
-            if images.iter().any(|i: &PacnerfImage| i.view == view && i.frame == frame) {
-                return Err(bad("file_path", format!("camera {view} frame {frame} is listed twice")));
+            if images
+                .iter()
+                .any(|i: &PacnerfImage| i.view == view && i.frame == frame)
+            {
+                return Err(bad(
+                    "file_path",
+                    format!("camera {view} frame {frame} is listed twice"),
+                ));
             }
             images.push(img);
         }
@@ -159,7 +169,9 @@ pub fn read_scene(root: &Path) -> Result<PacnerfScene, PacnerfError> {
         if !plates.contains_key(v) {
             return Err(PacnerfError::Layout {
                 path,
-                message: format!("camera {v} has no background plate (./data/r_{v}_-1.png is not listed)"),
+                message: format!(
+                    "camera {v} has no background plate (./data/r_{v}_-1.png is not listed)"
+                ),
             });
         }
     }
@@ -186,13 +198,18 @@ fn convert_c2w(m: &[Vec<f64>]) -> Result<[f64; 12], String> {
             m.iter().map(Vec::len).collect::<Vec<_>>()
         ));
     }
-    if let Some((i, j)) = (0..rows).flat_map(|i| (0..4).map(move |j| (i, j))).find(|&(i, j)| !m[i][j].is_finite()) {
+    if let Some((i, j)) = (0..rows)
+        .flat_map(|i| (0..4).map(move |j| (i, j)))
+        .find(|&(i, j)| !m[i][j].is_finite())
+    {
         return Err(format!("element [{i}][{j}] is not finite ({})", m[i][j]));
     }
     if rows == 4 {
         let last = &m[3];
         if (last[0].abs() + last[1].abs() + last[2].abs() + (last[3] - 1.0).abs()) > 1e-6 {
-            return Err(format!("the last row of a 4×4 pose must be [0, 0, 0, 1], found {last:?}"));
+            return Err(format!(
+                "the last row of a 4×4 pose must be [0, 0, 0, 1], found {last:?}"
+            ));
         }
     }
     // Rotation must be orthonormal.
@@ -202,7 +219,9 @@ fn convert_c2w(m: &[Vec<f64>]) -> Result<[f64; 12], String> {
             let dot: f64 = (0..3).map(|k| r(k, a) * r(k, b)).sum();
             let want = if a == b { 1.0 } else { 0.0 };
             if (dot - want).abs() > 1e-4 {
-                return Err(format!("the 3×3 rotation block is not orthonormal (column {a}·column {b} = {dot:.6})"));
+                return Err(format!(
+                    "the 3×3 rotation block is not orthonormal (column {a}·column {b} = {dot:.6})"
+                ));
             }
         }
     }
@@ -226,7 +245,9 @@ fn convert_intrinsic(k: &[Vec<f64>]) -> Result<[f64; 4], String> {
     }
     let (fx, fy, cx, cy) = (k[0][0], k[1][1], k[0][2], k[1][2]);
     if fx <= 0.0 || fy <= 0.0 {
-        return Err(format!("focal lengths must be positive, found fx = {fx}, fy = {fy}"));
+        return Err(format!(
+            "focal lengths must be positive, found fx = {fx}, fy = {fy}"
+        ));
     }
     if k[2] != [0.0, 0.0, 1.0] {
         return Err(format!("the last row must be [0, 0, 1], found {:?}", k[2]));
@@ -263,10 +284,19 @@ mod tests {
     fn bad_matrices_are_named() {
         let e = convert_c2w(&[vec![1.0, 0.0, 0.0], vec![0.0; 4], vec![0.0; 4]]).unwrap_err();
         assert!(e.contains("3×4"), "{e}");
-        let e = convert_c2w(&[vec![2.0, 0.0, 0.0, 0.0], vec![0.0, 1.0, 0.0, 0.0], vec![0.0, 0.0, 1.0, 0.0]])
-            .unwrap_err();
+        let e = convert_c2w(&[
+            vec![2.0, 0.0, 0.0, 0.0],
+            vec![0.0, 1.0, 0.0, 0.0],
+            vec![0.0, 0.0, 1.0, 0.0],
+        ])
+        .unwrap_err();
         assert!(e.contains("orthonormal"), "{e}");
-        let e = convert_intrinsic(&[vec![-1.0, 0.0, 1.0], vec![0.0, 1.0, 1.0], vec![0.0, 0.0, 1.0]]).unwrap_err();
+        let e = convert_intrinsic(&[
+            vec![-1.0, 0.0, 1.0],
+            vec![0.0, 1.0, 1.0],
+            vec![0.0, 0.0, 1.0],
+        ])
+        .unwrap_err();
         assert!(e.contains("fx = -1"), "{e}");
     }
 }

@@ -47,7 +47,9 @@ impl KeyMaterial {
     pub fn key(&self) -> String {
         let v = serde_json::to_value(self).expect("key material is plain data");
         debug_assert!(v.is_object());
-        blake3::hash(canonical_json(&v).as_bytes()).to_hex().to_string()
+        blake3::hash(canonical_json(&v).as_bytes())
+            .to_hex()
+            .to_string()
     }
 }
 
@@ -58,7 +60,11 @@ pub fn canonical_json(v: &Value) -> String {
             Value::Object(m) => {
                 let mut keys: Vec<&String> = m.keys().collect();
                 keys.sort();
-                Value::Object(keys.into_iter().map(|k| (k.clone(), sorted(&m[k]))).collect())
+                Value::Object(
+                    keys.into_iter()
+                        .map(|k| (k.clone(), sorted(&m[k])))
+                        .collect(),
+                )
             }
             Value::Array(a) => Value::Array(a.iter().map(sorted).collect()),
             other => other.clone(),
@@ -208,13 +214,18 @@ impl Store {
             .and_then(|b| serde_json::from_slice(&b).map_err(|e| e.to_string()))
             .map_err(|e| EntryProblem::BadManifest(mpath.clone(), e))?;
         if manifest.key != key {
-            return Err(EntryProblem::BadManifest(mpath, format!("it records key {}", manifest.key)));
+            return Err(EntryProblem::BadManifest(
+                mpath,
+                format!("it records key {}", manifest.key),
+            ));
         }
         for (rel, out) in &manifest.outputs {
             let p = dir.join(rel);
             match hash_file(&p) {
                 Err(_) => return Err(EntryProblem::MissingOutput(p)),
-                Ok((h, size)) if h != out.blake3 || size != out.size => return Err(EntryProblem::Corrupted(p)),
+                Ok((h, size)) if h != out.blake3 || size != out.size => {
+                    return Err(EntryProblem::Corrupted(p));
+                }
                 Ok(_) => {}
             }
         }
@@ -223,10 +234,11 @@ impl Store {
 
     /// A fresh temporary directory to build an entry in.
     pub fn begin(&self, stage: &str, key: &str) -> Result<PathBuf, CacheError> {
-        let tmp = self
-            .root
-            .join("tmp")
-            .join(format!("{stage}-{}-{}", &key[..16.min(key.len())], std::process::id()));
+        let tmp = self.root.join("tmp").join(format!(
+            "{stage}-{}-{}",
+            &key[..16.min(key.len())],
+            std::process::id()
+        ));
         if tmp.exists() {
             fs::remove_dir_all(&tmp).map_err(io_err(&tmp))?;
         }
@@ -251,7 +263,11 @@ impl Store {
         fs::create_dir_all(self.cache_dir()).map_err(io_err(&self.cache_dir()))?;
         if dest.exists() {
             // A forced re-run or a corrupted entry: move the old one aside first.
-            let trash = self.root.join("tmp").join(format!("old-{}-{}", manifest.stage, std::process::id()));
+            let trash = self.root.join("tmp").join(format!(
+                "old-{}-{}",
+                manifest.stage,
+                std::process::id()
+            ));
             let _ = fs::remove_dir_all(&trash);
             fs::rename(&dest, &trash).map_err(io_err(&dest))?;
             let _ = fs::remove_dir_all(&trash);
@@ -306,7 +322,12 @@ pub fn list_files(dir: &Path) -> std::io::Result<Vec<String>> {
                 walk(base, &p, out)?;
             } else {
                 let rel = p.strip_prefix(base).expect("under base");
-                out.push(rel.components().map(|c| c.as_os_str().to_string_lossy()).collect::<Vec<_>>().join("/"));
+                out.push(
+                    rel.components()
+                        .map(|c| c.as_os_str().to_string_lossy())
+                        .collect::<Vec<_>>()
+                        .join("/"),
+                );
             }
         }
         Ok(())
@@ -356,7 +377,8 @@ impl StatCache {
             return Ok(h.clone());
         }
         let (h, _) = hash_file(path)?;
-        self.entries.insert(abs, (md.size(), mtime, md.ino(), h.clone()));
+        self.entries
+            .insert(abs, (md.size(), mtime, md.ino(), h.clone()));
         self.dirty = true;
         Ok(h)
     }

@@ -32,12 +32,19 @@ impl Graph {
                         if !names.contains(n) {
                             return Err(err(
                                 s.position,
-                                format!("stage `{}` needs `{n}`, which is not a stage of this pipeline", s.name),
+                                format!(
+                                    "stage `{}` needs `{n}`, which is not a stage of this pipeline",
+                                    s.name
+                                ),
                                 suggest(n, &names).map(|k| format!("did you mean `{k}`?")),
                             ));
                         }
                         if n == &s.name {
-                            return Err(err(s.position, format!("stage `{}` needs itself", s.name), None));
+                            return Err(err(
+                                s.position,
+                                format!("stage `{}` needs itself", s.name),
+                                None,
+                            ));
                         }
                     }
                     needs.clone()

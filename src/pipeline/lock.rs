@@ -56,10 +56,17 @@ impl WorkdirLock {
         match file.try_lock() {
             Ok(()) => {}
             Err(fs::TryLockError::WouldBlock) => {
-                let holder = fs::read_to_string(&path).unwrap_or_default().trim().to_string();
+                let holder = fs::read_to_string(&path)
+                    .unwrap_or_default()
+                    .trim()
+                    .to_string();
                 return Err(LockError::Held {
                     dir: root.to_path_buf(),
-                    holder: if holder.is_empty() { "holder unknown".into() } else { holder },
+                    holder: if holder.is_empty() {
+                        "holder unknown".into()
+                    } else {
+                        holder
+                    },
                 });
             }
             Err(fs::TryLockError::Error(e)) => return Err(io(e)),
@@ -69,7 +76,12 @@ impl WorkdirLock {
             .map(|d| d.as_secs())
             .unwrap_or(0);
         file.set_len(0).map_err(io)?;
-        write!(file, "pid {}, `{command}`, since unix time {since}", std::process::id()).map_err(io)?;
+        write!(
+            file,
+            "pid {}, `{command}`, since unix time {since}",
+            std::process::id()
+        )
+        .map_err(io)?;
         file.flush().map_err(io)?;
         Ok(Self { _file: file, path })
     }

@@ -47,7 +47,9 @@ pub struct Reporter {
 
 impl std::fmt::Debug for Reporter {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Reporter").field("mode", &self.mode).finish()
+        f.debug_struct("Reporter")
+            .field("mode", &self.mode)
+            .finish()
     }
 }
 
@@ -101,8 +103,10 @@ impl Reporter {
         if self.mode == Mode::Bars {
             let bar = self.multi.add(ProgressBar::new(n as u64));
             bar.set_style(
-                ProgressStyle::with_template("{prefix:>10.bold} [{elapsed_precise}] stage {pos}/{len} {msg}")
-                    .expect("valid template"),
+                ProgressStyle::with_template(
+                    "{prefix:>10.bold} [{elapsed_precise}] stage {pos}/{len} {msg}",
+                )
+                .expect("valid template"),
             );
             bar.set_prefix("pipe");
             bar.set_position(i as u64);
@@ -132,8 +136,10 @@ impl Progress for Reporter {
             Mode::Bars => {
                 let bar = self.multi.add(ProgressBar::new(total));
                 bar.set_style(
-                    ProgressStyle::with_template("{prefix:>10} {bar:30} {pos}/{len} {per_sec} eta {eta} {msg}")
-                        .expect("valid template"),
+                    ProgressStyle::with_template(
+                        "{prefix:>10} {bar:30} {pos}/{len} {per_sec} eta {eta} {msg}",
+                    )
+                    .expect("valid template"),
                 );
                 bar.set_prefix(label.to_string());
                 if let Some(old) = self.work_bar.lock().expect("not poisoned").replace(bar) {
@@ -178,7 +184,9 @@ impl Progress for Reporter {
                     b.set_message(msg.to_string());
                 }
             }
-            Mode::Plain | Mode::Quiet => self.plain.lock().expect("not poisoned").msg = msg.to_string(),
+            Mode::Plain | Mode::Quiet => {
+                self.plain.lock().expect("not poisoned").msg = msg.to_string()
+            }
         }
     }
 

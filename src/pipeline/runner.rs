@@ -140,13 +140,18 @@ pub struct Workspace {
 impl Workspace {
     /// The work directory `dir` (its `.pipe/` is created on first run).
     pub fn new(dir: &Path) -> Self {
-        Self { store: Store::new(dir) }
+        Self {
+            store: Store::new(dir),
+        }
     }
 
     fn record_path(&self, pipeline_file: &Path) -> PathBuf {
         let abs = absolute(pipeline_file);
         let h = blake3::hash(abs.to_string_lossy().as_bytes()).to_hex();
-        self.store.root().join("runs").join(format!("{}.json", &h[..16]))
+        self.store
+            .root()
+            .join("runs")
+            .join(format!("{}.json", &h[..16]))
     }
 
     /// The last-run record of a pipeline file.
@@ -169,7 +174,9 @@ impl Workspace {
     /// All last-run records in this work directory.
     pub fn records(&self) -> Vec<RunRecord> {
         let dir = self.store.root().join("runs");
-        let Ok(rd) = fs::read_dir(dir) else { return Vec::new() };
+        let Ok(rd) = fs::read_dir(dir) else {
+            return Vec::new();
+        };
         rd.filter_map(|e| e.ok())
             .filter_map(|e| fs::read(e.path()).ok())
             .filter_map(|b| serde_json::from_slice(&b).ok())
@@ -177,19 +184,28 @@ impl Workspace {
     }
 
     /// Compute every stage's key and state, without running anything.
-    pub fn plan(&self, pipeline: &Pipeline, registry: &Registry) -> Result<(Graph, Vec<PlannedStage>), RunError> {
+    pub fn plan(
+        &self,
+        pipeline: &Pipeline,
+        registry: &Registry,
+    ) -> Result<(Graph, Vec<PlannedStage>), RunError> {
         let graph = Graph::build(pipeline, registry)?;
         let stat_path = self.store.root().join("stat-cache.json");
         let mut stat = StatCache::load(&stat_path);
         let record = self.record(&pipeline.file);
         let mut planned: Vec<PlannedStage> = Vec::new();
         for name in &graph.order {
-            let spec = pipeline.stage(name).expect("graph names come from the pipeline");
+            let spec = pipeline
+                .stage(name)
+                .expect("graph names come from the pipeline");
             let stage = registry.get(name).expect("spec validated the kind");
             let mut inputs = BTreeMap::new();
             let files = stage
                 .inputs(&spec.params, &pipeline.scene)
-                .map_err(|source| RunError::Stage { stage: name.clone(), source })?;
+                .map_err(|source| RunError::Stage {
+                    stage: name.clone(),
+                    source,
+                })?;
             for f in files {
                 let h = stat.hash(&f.path).map_err(|source| RunError::Input {
                     stage: name.clone(),
@@ -201,7 +217,12 @@ impl Workspace {
             let upstream = graph.upstream[name]
                 .iter()
                 .map(|u| {
-                    let key = planned.iter().find(|p| &p.name == u).expect("topological order").key.clone();
+                    let key = planned
+                        .iter()
+                        .find(|p| &p.name == u)
+                        .expect("topological order")
+                        .key
+                        .clone();
                     (u.clone(), key)
                 })
                 .collect();
@@ -213,7 +234,11 @@ impl Workspace {
                 scene: stage.scene_key(&pipeline.scene),
                 upstream,
                 inputs,
-                schemas: stage.output_schemas().into_iter().map(|(t, v)| (t.to_string(), v)).collect(),
+                schemas: stage
+                    .output_schemas()
+                    .into_iter()
+                    .map(|(t, v)| (t.to_string(), v))
+                    .collect(),
             };
             let key = km.key();
             let state = match self.store.verify(name, &key) {
@@ -291,7 +316,9 @@ impl Workspace {
         let n = graph.order.len();
         for (i, p) in planned.iter().enumerate() {
             if !selected.contains(&p.name) {
-                report.stages.push((p.name.clone(), p.key.clone(), Outcome::Skipped));
+                report
+                    .stages
+                    .push((p.name.clone(), p.key.clone(), Outcome::Skipped));
                 continue;
             }
             if interrupt.load(std::sync::atomic::Ordering::SeqCst) {
@@ -308,11 +335,19 @@ impl Workspace {
                         manifest: (**m).clone(),
                     },
                 );
-                report.stages.push((p.name.clone(), p.key.clone(), Outcome::Cached));
+                report
+                    .stages
+                    .push((p.name.clone(), p.key.clone(), Outcome::Cached));
                 continue;
             }
             if let StageState::Stale(reasons) = &p.state {
-                reporter.println(&format!("[{}/{}] {}: stale: {}", i + 1, n, p.name, reasons.join("; ")));
+                reporter.println(&format!(
+                    "[{}/{}] {}: stale: {}",
+                    i + 1,
+                    n,
+                    p.name,
+                    reasons.join("; ")
+                ));
             }
             reporter.stage_started(i, n, &p.name);
             let upstream: BTreeMap<String, UpstreamEntry> = graph.upstream[&p.name]
@@ -322,10 +357,21 @@ impl Workspace {
             let spec = pipeline.stage(&p.name).expect("validated");
             let inputs = stage
                 .inputs(&spec.params, &pipeline.scene)
-                .map_err(|source| RunError::Stage { stage: p.name.clone(), source })?;
+                .map_err(|source| RunError::Stage {
+                    stage: p.name.clone(),
+                    source,
+                })?;
             let tmp = self.store.begin(&p.name, &p.key)?;
             let start = Instant::now();
-            let mut ctx = StageContext::new(&p.name, &pipeline.scene, &upstream, &inputs, &tmp, reporter, interrupt);
+            let mut ctx = StageContext::new(
+                &p.name,
+                &pipeline.scene,
+                &upstream,
+                &inputs,
+                &tmp,
+                reporter,
+                interrupt,
+            );
             let result = stage.run(&spec.params, &mut ctx).and_then(|()| {
                 if ctx.metrics.is_empty() {
                     Ok(())
@@ -339,7 +385,10 @@ impl Workspace {
                 reporter.stage_finished(i, n, &p.name, "FAILED");
                 return Err(match e {
                     StageError::Interrupted => RunError::Interrupted(p.name.clone()),
-                    source => RunError::Stage { stage: p.name.clone(), source },
+                    source => RunError::Stage {
+                        stage: p.name.clone(),
+                        source,
+                    },
                 });
             }
             let wall_s = start.elapsed().as_secs_f64();
@@ -360,7 +409,12 @@ impl Workspace {
             let manifest = self.store.commit(&tmp, manifest)?;
             record.stages.insert(p.name.clone(), p.key_material.clone());
             self.save_record(&record)?;
-            reporter.stage_finished(i, n, &p.name, &format!("done in {wall_s:.2} s ({})", short(&p.key)));
+            reporter.stage_finished(
+                i,
+                n,
+                &p.name,
+                &format!("done in {wall_s:.2} s ({})", short(&p.key)),
+            );
             entries.insert(
                 p.name.clone(),
                 UpstreamEntry {
@@ -369,7 +423,9 @@ impl Workspace {
                     manifest,
                 },
             );
-            report.stages.push((p.name.clone(), p.key.clone(), Outcome::Ran { wall_s }));
+            report
+                .stages
+                .push((p.name.clone(), p.key.clone(), Outcome::Ran { wall_s }));
         }
         // Cached stages count as this pipeline's current state too.
         for p in &planned {
@@ -407,7 +463,8 @@ impl Workspace {
         for e in self.store.entries()? {
             if !keep.contains(&e) {
                 let dir = self.store.cache_dir().join(&e);
-                fs::remove_dir_all(&dir).map_err(|source| cache::CacheError::Io { path: dir, source })?;
+                fs::remove_dir_all(&dir)
+                    .map_err(|source| cache::CacheError::Io { path: dir, source })?;
                 removed.push(e);
             }
         }
@@ -421,19 +478,39 @@ pub fn short(key: &str) -> &str {
 }
 
 fn absolute(p: &Path) -> PathBuf {
-    fs::canonicalize(p).unwrap_or_else(|_| std::env::current_dir().map(|d| d.join(p)).unwrap_or_else(|_| p.to_path_buf()))
+    fs::canonicalize(p).unwrap_or_else(|_| {
+        std::env::current_dir()
+            .map(|d| d.join(p))
+            .unwrap_or_else(|_| p.to_path_buf())
+    })
 }
 
 /// Human reasons why `cur` differs from `prev` (the last run's key material of stage `name`).
-fn explain(name: &str, prev: &KeyMaterial, cur: &KeyMaterial, planned: &[PlannedStage]) -> Vec<String> {
+fn explain(
+    name: &str,
+    prev: &KeyMaterial,
+    cur: &KeyMaterial,
+    planned: &[PlannedStage],
+) -> Vec<String> {
     let mut out = Vec::new();
     if prev.key_format != cur.key_format {
-        out.push(format!("cache key format changed {} → {}", prev.key_format, cur.key_format));
+        out.push(format!(
+            "cache key format changed {} → {}",
+            prev.key_format, cur.key_format
+        ));
     }
     if prev.version != cur.version {
-        out.push(format!("code version of `{}` changed {} → {}", cur.kind, prev.version, cur.version));
+        out.push(format!(
+            "code version of `{}` changed {} → {}",
+            cur.kind, prev.version, cur.version
+        ));
     }
-    diff_values(&format!("param `{name}"), &prev.params, &cur.params, &mut out);
+    diff_values(
+        &format!("param `{name}"),
+        &prev.params,
+        &cur.params,
+        &mut out,
+    );
     diff_values("scene `scene", &prev.scene, &cur.scene, &mut out);
     for (u, key) in &cur.upstream {
         match prev.upstream.get(u) {
@@ -447,7 +524,11 @@ fn explain(name: &str, prev: &KeyMaterial, cur: &KeyMaterial, planned: &[Planned
             }
         }
     }
-    for u in prev.upstream.keys().filter(|u| !cur.upstream.contains_key(*u)) {
+    for u in prev
+        .upstream
+        .keys()
+        .filter(|u| !cur.upstream.contains_key(*u))
+    {
         out.push(format!("upstream `{u}` no longer used"));
     }
     let mut changed: Vec<String> = Vec::new();
@@ -480,15 +561,24 @@ fn diff_values(prefix: &str, a: &Value, b: &Value, out: &mut Vec<String>) {
                 let p = format!("{prefix}.{k}");
                 match y.get(k) {
                     Some(vb) => diff_values(&p, va, vb, out),
-                    None => out.push(format!("{}` removed (was {va})", p.replacen("`scene.", "`", 1))),
+                    None => out.push(format!(
+                        "{}` removed (was {va})",
+                        p.replacen("`scene.", "`", 1)
+                    )),
                 }
             }
             for (k, vb) in y.iter().filter(|(k, _)| !x.contains_key(*k)) {
-                out.push(format!("{}` added ({vb})", format!("{prefix}.{k}").replacen("`scene.", "`", 1)));
+                out.push(format!(
+                    "{}` added ({vb})",
+                    format!("{prefix}.{k}").replacen("`scene.", "`", 1)
+                ));
             }
         }
         (a, b) if a != b => {
-            out.push(format!("{}` changed {a} → {b}", prefix.replacen("`scene.", "`", 1)));
+            out.push(format!(
+                "{}` changed {a} → {b}",
+                prefix.replacen("`scene.", "`", 1)
+            ));
         }
         _ => {}
     }

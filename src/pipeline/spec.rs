@@ -152,7 +152,11 @@ pub struct SpecError {
 const TOP_KEYS: [&str; 4] = ["name", "scene", "preset", "stages"];
 
 /// Read, validate and resolve a pipeline file.
-pub fn load(path: &Path, registry: &Registry, overrides: &Overrides) -> Result<Pipeline, SpecError> {
+pub fn load(
+    path: &Path,
+    registry: &Registry,
+    overrides: &Overrides,
+) -> Result<Pipeline, SpecError> {
     let text = std::fs::read_to_string(path).map_err(|e| SpecError {
         file: path.display().to_string(),
         position: None,
@@ -178,7 +182,8 @@ pub fn parse(
     let Value::Object(mut root) = root else {
         return Err(ctx.err(
             Some(Position { line: 1, col: 1 }),
-            "a pipeline file is a mapping with `name`, `scene`, `stages` (and optionally `preset`)".into(),
+            "a pipeline file is a mapping with `name`, `scene`, `stages` (and optionally `preset`)"
+                .into(),
             None,
         ));
     };
@@ -189,21 +194,30 @@ pub fn parse(
     }
     let name = match root.remove("name") {
         Some(Value::String(s)) if !s.trim().is_empty() => s,
-        Some(other) => return Err(ctx.at("name", format!("`name` must be a non-empty string, found {other}"))),
+        Some(other) => {
+            return Err(ctx.at(
+                "name",
+                format!("`name` must be a non-empty string, found {other}"),
+            ));
+        }
         None => return Err(ctx.missing("name", "")),
     };
     let preset = match (overrides.preset, root.remove("preset")) {
         (Some(p), _) => p,
         (None, None) => Preset::default(),
-        (None, Some(v)) => v
-            .as_str()
-            .and_then(Preset::parse)
-            .ok_or_else(|| ctx.at("preset", format!("unknown preset {v}; expected one of draft, standard, paper")))?,
+        (None, Some(v)) => v.as_str().and_then(Preset::parse).ok_or_else(|| {
+            ctx.at(
+                "preset",
+                format!("unknown preset {v}; expected one of draft, standard, paper"),
+            )
+        })?,
     };
 
     let mut sets = parse_sets(&ctx, &overrides.sets)?;
 
-    let mut scene_value = root.remove("scene").ok_or_else(|| ctx.missing("scene", ""))?;
+    let mut scene_value = root
+        .remove("scene")
+        .ok_or_else(|| ctx.missing("scene", ""))?;
     for s in sets.iter_mut().filter(|s| s.stage == "scene") {
         set_path(&mut scene_value, &s.key_path, s.value.clone());
     }
@@ -219,10 +233,17 @@ pub fn parse(
         scene.path = base.join(&scene.path);
     }
 
-    let stages_value = root.remove("stages").ok_or_else(|| ctx.missing("stages", ""))?;
+    let stages_value = root
+        .remove("stages")
+        .ok_or_else(|| ctx.missing("stages", ""))?;
     let stages_map = match stages_value {
         Value::Object(m) if !m.is_empty() => m,
-        _ => return Err(ctx.at("stages", "`stages` must be a non-empty mapping of stage name to parameters".into())),
+        _ => {
+            return Err(ctx.at(
+                "stages",
+                "`stages` must be a non-empty mapping of stage name to parameters".into(),
+            ));
+        }
     };
     let kinds: Vec<String> = registry.kinds().iter().map(|s| s.to_string()).collect();
     for s in &sets {
@@ -268,7 +289,10 @@ pub fn parse(
                     .collect::<Result<Vec<_>, _>>()?,
             ),
             Some(other) => {
-                return Err(ctx.at(&format!("{stage_path}.needs"), format!("`needs` lists stage names, found {other}")));
+                return Err(ctx.at(
+                    &format!("{stage_path}.needs"),
+                    format!("`needs` lists stage names, found {other}"),
+                ));
             }
         };
         let mut merged = stage.preset_params(preset);
@@ -311,11 +335,16 @@ fn scene_keys() -> Vec<String> {
 }
 
 /// The nearest candidate to `word`, if any is close enough to be a plausible typo.
-pub fn suggest<'a>(word: &str, candidates: impl IntoIterator<Item = &'a String>) -> Option<&'a String> {
+pub fn suggest<'a>(
+    word: &str,
+    candidates: impl IntoIterator<Item = &'a String>,
+) -> Option<&'a String> {
     candidates
         .into_iter()
         .map(|c| (strsim::damerau_levenshtein(word, c), c))
-        .filter(|(d, c)| *d <= (c.len().max(word.len()) / 3).max(1) || strsim::jaro_winkler(word, c) > 0.85)
+        .filter(|(d, c)| {
+            *d <= (c.len().max(word.len()) / 3).max(1) || strsim::jaro_winkler(word, c) > 0.85
+        })
         .min_by_key(|(d, _)| *d)
         .map(|(_, c)| c)
 }
@@ -343,7 +372,9 @@ fn set_path(target: &mut Value, key_path: &[String], value: Value) {
         if !cur.is_object() {
             *cur = Value::Object(Map::new());
         }
-        let Value::Object(m) = cur else { unreachable!() };
+        let Value::Object(m) = cur else {
+            unreachable!()
+        };
         cur = m.entry(k.clone()).or_insert(Value::Null);
     }
     *cur = value;
@@ -375,8 +406,12 @@ fn parse_sets(ctx: &Ctx, sets: &[String]) -> Result<Vec<SetOverride>, SpecError>
             if stage.is_empty() || key_path.is_empty() || key_path.iter().any(String::is_empty) {
                 return Err(bad(format!("--set {raw}: the key must be stage.key")));
             }
-            let value = yaml::parse_value(rhs)
-                .map_err(|e| bad(format!("--set {raw}: the value is not valid YAML: {}", e.message)))?;
+            let value = yaml::parse_value(rhs).map_err(|e| {
+                bad(format!(
+                    "--set {raw}: the value is not valid YAML: {}",
+                    e.message
+                ))
+            })?;
             Ok(SetOverride {
                 raw: raw.clone(),
                 stage,
@@ -407,9 +442,15 @@ impl Ctx {
     }
 
     fn missing(&self, key: &str, parent: &str) -> SpecError {
-        let where_ = if parent.is_empty() { "at the top level".to_string() } else { format!("in {parent}") };
+        let where_ = if parent.is_empty() {
+            "at the top level".to_string()
+        } else {
+            format!("in {parent}")
+        };
         self.err(
-            self.positions.value(parent).or(Some(Position { line: 1, col: 1 })),
+            self.positions
+                .value(parent)
+                .or(Some(Position { line: 1, col: 1 })),
             format!("missing key `{key}` {where_}"),
             None,
         )
@@ -417,12 +458,20 @@ impl Ctx {
 
     fn unknown_key(&self, key: &str, parent: &str, valid: &[String]) -> SpecError {
         let full = yaml::join(parent, key);
-        let where_ = if parent.is_empty() { "at the top level".to_string() } else { format!("in {parent}") };
+        let where_ = if parent.is_empty() {
+            "at the top level".to_string()
+        } else {
+            format!("in {parent}")
+        };
         let hint = match suggest(key, valid) {
             Some(s) => format!("did you mean `{s}`?"),
             None => format!("valid keys: {}", valid.join(", ")),
         };
-        self.err(self.positions.key(&full), format!("unknown key `{key}` {where_}"), Some(hint))
+        self.err(
+            self.positions.key(&full),
+            format!("unknown key `{key}` {where_}"),
+            Some(hint),
+        )
     }
 
     fn unknown_stage(&self, name: &str, kinds: &[String]) -> SpecError {
@@ -438,12 +487,30 @@ impl Ctx {
     }
 
     /// Turn a serde error inside `prefix` (`stages.material`, `scene`) into a located message.
-    fn param_error(&self, prefix: &str, e: &ParamError, valid: &[String], sets: &[SetOverride]) -> SpecError {
-        let full = if e.path.is_empty() { prefix.to_string() } else { format!("{prefix}.{}", e.path) };
+    fn param_error(
+        &self,
+        prefix: &str,
+        e: &ParamError,
+        valid: &[String],
+        sets: &[SetOverride],
+    ) -> SpecError {
+        let full = if e.path.is_empty() {
+            prefix.to_string()
+        } else {
+            format!("{prefix}.{}", e.path)
+        };
         let origin = sets
             .iter()
             .find(|s| {
-                let p = format!("{}.{}", if s.stage == "scene" { "scene".to_string() } else { format!("stages.{}", s.stage) }, s.key_path.join("."));
+                let p = format!(
+                    "{}.{}",
+                    if s.stage == "scene" {
+                        "scene".to_string()
+                    } else {
+                        format!("stages.{}", s.stage)
+                    },
+                    s.key_path.join(".")
+                );
                 full.starts_with(&p) || p.starts_with(&full)
             })
             .map(|s| format!(" (from --set {})", s.raw));
@@ -464,8 +531,16 @@ impl Ctx {
             let key = rest.split('`').next().unwrap_or_default();
             return self.missing(key, &full);
         }
-        let message = format!("{full}: {}{}", e.message, origin.clone().unwrap_or_default());
-        let position = if origin.is_some() { None } else { self.positions.value(&full) };
+        let message = format!(
+            "{full}: {}{}",
+            e.message,
+            origin.clone().unwrap_or_default()
+        );
+        let position = if origin.is_some() {
+            None
+        } else {
+            self.positions.value(&full)
+        };
         self.err(position, message, None)
     }
 }
@@ -489,8 +564,13 @@ pub fn json_schema(registry: &Registry) -> Value {
     for stage in registry.iter() {
         let mut s = take(stage.params_schema());
         if let Value::Object(m) = &mut s {
-            m.insert("description".into(), Value::String(stage.description().into()));
-            let props = m.entry("properties").or_insert_with(|| Value::Object(Map::new()));
+            m.insert(
+                "description".into(),
+                Value::String(stage.description().into()),
+            );
+            let props = m
+                .entry("properties")
+                .or_insert_with(|| Value::Object(Map::new()));
             if let Value::Object(p) = props {
                 p.insert(
                     "needs".into(),

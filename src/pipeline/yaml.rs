@@ -115,7 +115,11 @@ fn pos_of(node: &MarkedYaml<'_>) -> Position {
     }
 }
 
-fn convert(node: &MarkedYaml<'_>, path: &str, positions: &mut Positions) -> Result<Value, YamlError> {
+fn convert(
+    node: &MarkedYaml<'_>,
+    path: &str,
+    positions: &mut Positions,
+) -> Result<Value, YamlError> {
     positions.values.insert(path.to_string(), pos_of(node));
     let err = |message: String| YamlError {
         position: Some(pos_of(node)),
@@ -166,7 +170,8 @@ fn scalar(s: &Scalar<'_>) -> Result<Value, String> {
         Scalar::FloatingPoint(f) => {
             let f = f.into_inner();
             Value::Number(
-                Number::from_f64(f).ok_or_else(|| format!("non-finite number {f} is not allowed"))?,
+                Number::from_f64(f)
+                    .ok_or_else(|| format!("non-finite number {f} is not allowed"))?,
             )
         }
         Scalar::String(s) => Value::String(s.to_string()),
@@ -182,7 +187,10 @@ mod tests {
         let text = "name: x\nstages:\n  material:\n    grid: 64\n    learn: [E, nu]\n";
         let (v, pos) = parse(text).unwrap();
         assert_eq!(v["stages"]["material"]["grid"], 64);
-        assert_eq!(pos.key("stages.material.grid"), Some(Position { line: 4, col: 5 }));
+        assert_eq!(
+            pos.key("stages.material.grid"),
+            Some(Position { line: 4, col: 5 })
+        );
         assert_eq!(pos.value("stages.material.learn[1]").unwrap().line, 5);
         // Unknown deeper paths fall back to the nearest known parent.
         assert_eq!(pos.value("stages.material.nope").unwrap().line, 3);

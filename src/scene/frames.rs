@@ -93,12 +93,10 @@ impl Table for Frames {
             Field::new("mask", DataType::Utf8, false),
             Field::new("role", DataType::Utf8, false),
         ])
-        .with_metadata(
-            [
-                ("schema_version".to_string(), Self::VERSION.to_string()),
-                ("camera_convention".to_string(), "opencv".to_string()),
-            ],
-        )
+        .with_metadata([
+            ("schema_version".to_string(), Self::VERSION.to_string()),
+            ("camera_convention".to_string(), "opencv".to_string()),
+        ])
     }
 
     fn to_batch(&self) -> RecordBatch {
@@ -123,9 +121,15 @@ impl Table for Frames {
                 f(|x| x.cy),
                 Arc::new(UInt32Array::from_iter_values(r.iter().map(|x| x.width))),
                 Arc::new(UInt32Array::from_iter_values(r.iter().map(|x| x.height))),
-                Arc::new(StringArray::from_iter_values(r.iter().map(|x| x.image.as_str()))),
-                Arc::new(StringArray::from_iter_values(r.iter().map(|x| x.mask.as_str()))),
-                Arc::new(StringArray::from_iter_values(r.iter().map(|x| x.role.as_str()))),
+                Arc::new(StringArray::from_iter_values(
+                    r.iter().map(|x| x.image.as_str()),
+                )),
+                Arc::new(StringArray::from_iter_values(
+                    r.iter().map(|x| x.mask.as_str()),
+                )),
+                Arc::new(StringArray::from_iter_values(
+                    r.iter().map(|x| x.role.as_str()),
+                )),
             ],
         )
         .expect("columns match the schema")

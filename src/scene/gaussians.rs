@@ -54,8 +54,11 @@ fn f32_list(n: i32) -> DataType {
 }
 
 fn list_builder(n: i32) -> FixedSizeListBuilder<Float32Builder> {
-    FixedSizeListBuilder::new(Float32Builder::new(), n)
-        .with_field(Arc::new(Field::new("item", DataType::Float32, false)))
+    FixedSizeListBuilder::new(Float32Builder::new(), n).with_field(Arc::new(Field::new(
+        "item",
+        DataType::Float32,
+        false,
+    )))
 }
 
 impl Table for Gaussians {
@@ -75,12 +78,10 @@ impl Table for Gaussians {
             Field::new("sh", f32_list(-1), false),
             Field::new("simulated", DataType::Boolean, false),
         ])
-        .with_metadata(
-            [
-                ("schema_version".to_string(), Self::VERSION.to_string()),
-                ("sh_layout".to_string(), "[coeff k][channel]".to_string()),
-            ],
-        )
+        .with_metadata([
+            ("schema_version".to_string(), Self::VERSION.to_string()),
+            ("sh_layout".to_string(), "[coeff k][channel]".to_string()),
+        ])
     }
 
     fn to_batch(&self) -> RecordBatch {
@@ -93,7 +94,8 @@ impl Table for Gaussians {
             ls.append(true);
             rot.values().append_slice(&self.rotation[i]);
             rot.append(true);
-            sh.values().append_slice(&self.sh[i * n_sh as usize..(i + 1) * n_sh as usize]);
+            sh.values()
+                .append_slice(&self.sh[i * n_sh as usize..(i + 1) * n_sh as usize]);
             sh.append(true);
         }
         let mut schema = Self::schema();
@@ -102,7 +104,11 @@ impl Table for Gaussians {
         let mut md = schema.metadata().clone();
         md.insert("sh_degree", self.sh_degree.to_string());
         schema = Schema::new(fields).with_metadata(md);
-        let p = |a: usize| Arc::new(Float32Array::from_iter_values(self.position.iter().map(|v| v[a])));
+        let p = |a: usize| {
+            Arc::new(Float32Array::from_iter_values(
+                self.position.iter().map(|v| v[a]),
+            ))
+        };
         RecordBatch::try_new(
             Arc::new(schema),
             vec![
@@ -159,12 +165,20 @@ impl Table for Gaussians {
         Ok(Self {
             sh_degree: degree,
             id: column::<UInt32Array>(b, "id").values().to_vec(),
-            position: (0..n).map(|i| [x.value(i), y.value(i), z.value(i)]).collect(),
+            position: (0..n)
+                .map(|i| [x.value(i), y.value(i), z.value(i)])
+                .collect(),
             log_scale: ls.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
-            rotation: rot.chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect(),
+            rotation: rot
+                .chunks_exact(4)
+                .map(|c| [c[0], c[1], c[2], c[3]])
+                .collect(),
             opacity_logit: column::<Float32Array>(b, "opacity_logit").values().to_vec(),
             sh: vals(sh),
-            simulated: column::<BooleanArray>(b, "simulated").iter().map(|v| v.unwrap_or(false)).collect(),
+            simulated: column::<BooleanArray>(b, "simulated")
+                .iter()
+                .map(|v| v.unwrap_or(false))
+                .collect(),
         })
     }
 }

@@ -39,11 +39,15 @@ impl Table for Metrics {
         RecordBatch::try_new(
             Arc::new(Self::schema()),
             vec![
-                Arc::new(StringArray::from_iter_values(r.iter().map(|_| self.stage.as_str()))),
+                Arc::new(StringArray::from_iter_values(
+                    r.iter().map(|_| self.stage.as_str()),
+                )),
                 Arc::new(UInt32Array::from_iter(r.iter().map(|x| x.epoch))),
                 Arc::new(UInt16Array::from_iter(r.iter().map(|x| x.view))),
                 Arc::new(UInt16Array::from_iter(r.iter().map(|x| x.frame))),
-                Arc::new(StringArray::from_iter_values(r.iter().map(|x| x.metric.as_str()))),
+                Arc::new(StringArray::from_iter_values(
+                    r.iter().map(|x| x.metric.as_str()),
+                )),
                 Arc::new(Float64Array::from_iter_values(r.iter().map(|x| x.value))),
             ],
         )
@@ -62,7 +66,11 @@ impl Table for Metrics {
             valid.then_some(v)
         }
         Ok(Self {
-            stage: if b.num_rows() > 0 { stage.value(0).to_string() } else { String::new() },
+            stage: if b.num_rows() > 0 {
+                stage.value(0).to_string()
+            } else {
+                String::new()
+            },
             rows: (0..b.num_rows())
                 .map(|i| MetricRow {
                     epoch: opt(epoch.is_valid(i), epoch.value(i)),

@@ -118,9 +118,14 @@ fn same_type(a: &DataType, b: &DataType) -> bool {
 pub fn type_name(t: &DataType) -> String {
     match t {
         DataType::FixedSizeList(f, n) if *n < 0 => {
-            format!("FixedSizeList<{}, 3·(sh_degree+1)²>", type_name(f.data_type()))
+            format!(
+                "FixedSizeList<{}, 3·(sh_degree+1)²>",
+                type_name(f.data_type())
+            )
         }
-        DataType::FixedSizeList(f, n) => format!("FixedSizeList<{}, {n}>", type_name(f.data_type())),
+        DataType::FixedSizeList(f, n) => {
+            format!("FixedSizeList<{}, {n}>", type_name(f.data_type()))
+        }
         DataType::List(f) => format!("List<{}>", type_name(f.data_type())),
         other => format!("{other:?}"),
     }
@@ -165,7 +170,10 @@ pub fn read<T: Table>(path: &Path) -> Result<T, TableError> {
     T::from_batch(&batch, path)
 }
 
-fn arrow_select_concat(schema: &Arc<Schema>, batches: &[RecordBatch]) -> Result<RecordBatch, arrow_schema::ArrowError> {
+fn arrow_select_concat(
+    schema: &Arc<Schema>,
+    batches: &[RecordBatch],
+) -> Result<RecordBatch, arrow_schema::ArrowError> {
     match batches {
         [] => Ok(RecordBatch::new_empty(schema.clone())),
         [one] => Ok(one.clone()),

@@ -15,7 +15,9 @@ use serde_json::{Value, json};
 use crate::io::image::{self, Rgb8};
 use crate::io::pacnerf::{self, PacnerfImage, PacnerfScene};
 use crate::pipeline::spec::{DatasetKind, Preset, SceneSpec};
-use crate::pipeline::stage::{InputFile, MetricRow, ParamError, StageContext, StageError, TypedStage};
+use crate::pipeline::stage::{
+    InputFile, MetricRow, ParamError, StageContext, StageError, TypedStage,
+};
 use crate::scene::frames::{FrameRow, Frames, Role};
 use crate::scene::table::{self, Table};
 
@@ -87,8 +89,7 @@ impl TypedStage for Ingest {
     type Params = IngestParams;
     const KIND: &'static str = "ingest";
     const VERSION: u32 = 1;
-    const DESCRIPTION: &'static str =
-        "Read a PAC-NeRF capture, matte the object against each camera's background plate, write masks, composited images and frames.arrow";
+    const DESCRIPTION: &'static str = "Read a PAC-NeRF capture, matte the object against each camera's background plate, write masks, composited images and frames.arrow";
 
     fn output_schemas(&self) -> Vec<(&'static str, u32)> {
         vec![(Frames::NAME, Frames::VERSION)]
@@ -150,7 +151,11 @@ impl TypedStage for Ingest {
             return Err(StageError::failed(IngestError::Invalid(format!(
                 "scene.test_views: camera {v} is not in {} (cameras: {})",
                 scene.path.join("all_data.json").display(),
-                views.iter().map(u16::to_string).collect::<Vec<_>>().join(", ")
+                views
+                    .iter()
+                    .map(u16::to_string)
+                    .collect::<Vec<_>>()
+                    .join(", ")
             ))));
         }
         let images = selected(&ds, p);
@@ -193,8 +198,13 @@ impl TypedStage for Ingest {
             .par_iter()
             .map(|img| {
                 interrupted.check_interrupted()?;
-                let plate = &plates.iter().find(|(v, _)| *v == img.view).expect("plate per view").1;
-                let r = process(img, plate, p, &scene.path, &scene.test_views, &out_dir).map_err(StageError::failed);
+                let plate = &plates
+                    .iter()
+                    .find(|(v, _)| *v == img.view)
+                    .expect("plate per view")
+                    .1;
+                let r = process(img, plate, p, &scene.path, &scene.test_views, &out_dir)
+                    .map_err(StageError::failed);
                 progress.inc(1);
                 r
             })
@@ -227,8 +237,10 @@ impl TypedStage for Ingest {
                     value,
                 });
             }
-            ctx.progress
-                .log(&format!("mask IoU against gt/masks: mean {mean:.4}, min {min:.4} over {} images", ious.len()));
+            ctx.progress.log(&format!(
+                "mask IoU against gt/masks: mean {mean:.4}, min {min:.4} over {} images",
+                ious.len()
+            ));
         }
         ctx.progress.log(&format!(
             "{} images from {} cameras ({} test), {}×{} px",
@@ -238,7 +250,8 @@ impl TypedStage for Ingest {
             w0,
             h0
         ));
-        table::write(&ctx.out_dir.join("frames.arrow"), &Frames { rows }).map_err(StageError::failed)?;
+        table::write(&ctx.out_dir.join("frames.arrow"), &Frames { rows })
+            .map_err(StageError::failed)?;
         Ok(())
     }
 }
@@ -264,7 +277,9 @@ fn selected<'a>(ds: &'a PacnerfScene, p: &IngestParams) -> Vec<&'a PacnerfImage>
 }
 
 fn gt_mask_path(root: &Path, img: &PacnerfImage) -> PathBuf {
-    root.join("gt").join("masks").join(format!("m_{}_{}.png", img.view, img.frame))
+    root.join("gt")
+        .join("masks")
+        .join(format!("m_{}_{}.png", img.view, img.frame))
 }
 
 /// Matte, composite and write one image; returns its row and the IoU against ground truth.
@@ -303,7 +318,11 @@ fn process(
                 gt_path.display()
             )));
         }
-        Some(g.into_iter().map(|v| if v >= 128 { 255 } else { 0 }).collect::<Vec<u8>>())
+        Some(
+            g.into_iter()
+                .map(|v| if v >= 128 { 255 } else { 0 })
+                .collect::<Vec<u8>>(),
+        )
     } else {
         None
     };
@@ -316,7 +335,11 @@ fn process(
             ))
         })?,
         MatteMode::Plate => {
-            fn view(d: &[u8], w: u32, h: u32) -> Result<pipe_matte::RgbImageView<'_>, pipe_matte::MatteError> {
+            fn view(
+                d: &[u8],
+                w: u32,
+                h: u32,
+            ) -> Result<pipe_matte::RgbImageView<'_>, pipe_matte::MatteError> {
                 pipe_matte::RgbImageView::new(d, w as usize, h as usize)
             }
             let to_err = |source| IngestError::Matte {
@@ -367,7 +390,11 @@ fn process(
         height: h,
         image: image_rel,
         mask: mask_rel,
-        role: if test_views.contains(&img.view) { Role::Test } else { Role::Train },
+        role: if test_views.contains(&img.view) {
+            Role::Test
+        } else {
+            Role::Train
+        },
     };
     Ok((row, iou))
 }
@@ -380,5 +407,9 @@ pub fn iou(a: &[u8], b: &[u8]) -> f64 {
         inter += u64::from(x && y);
         union += u64::from(x || y);
     }
-    if union == 0 { 1.0 } else { inter as f64 / union as f64 }
+    if union == 0 {
+        1.0
+    } else {
+        inter as f64 / union as f64
+    }
 }

@@ -37,7 +37,14 @@ fn ingest(scene: &Path, test_views: &str) -> (tempfile::TempDir, Result<PathBuf,
     let res = spec::load(&file, &reg, &Overrides::default())
         .map_err(RunError::from)
         .and_then(|p| {
-            ws.run(&p, &reg, &RunOptions::default(), &Reporter::new(Mode::Quiet), &stop, "test")?;
+            ws.run(
+                &p,
+                &reg,
+                &RunOptions::default(),
+                &Reporter::new(Mode::Quiet),
+                &stop,
+                "test",
+            )?;
             let (_, planned) = ws.plan(&p, &reg)?;
             Ok(ws.store.entry_dir("ingest", &planned[0].key))
         });
@@ -55,18 +62,26 @@ fn fixture_scene_cameras_frames_and_masks() {
     let frames: Frames = table::read(&entry.join("frames.arrow")).unwrap();
     let json: Vec<serde_json::Value> =
         serde_json::from_slice(&std::fs::read(fixture().join("all_data.json")).unwrap()).unwrap();
-    let objects: Vec<&serde_json::Value> =
-        json.iter().filter(|e| !e["file_path"].as_str().unwrap().ends_with("_-1.png")).collect();
+    let objects: Vec<&serde_json::Value> = json
+        .iter()
+        .filter(|e| !e["file_path"].as_str().unwrap().ends_with("_-1.png"))
+        .collect();
     assert_eq!(frames.rows.len(), objects.len());
     assert_eq!(frames.rows.len(), 11 * 14);
     let views: std::collections::BTreeSet<u16> = frames.rows.iter().map(|r| r.view).collect();
     assert_eq!(views.len(), 11);
     for e in &objects {
         let name = e["file_path"].as_str().unwrap();
-        let stem = name.trim_start_matches("./data/r_").trim_end_matches(".png");
+        let stem = name
+            .trim_start_matches("./data/r_")
+            .trim_end_matches(".png");
         let (v, f) = stem.split_once('_').unwrap();
         let (v, f): (u16, u16) = (v.parse().unwrap(), f.parse().unwrap());
-        let row = frames.rows.iter().find(|r| r.view == v && r.frame == f).unwrap();
+        let row = frames
+            .rows
+            .iter()
+            .find(|r| r.view == v && r.frame == f)
+            .unwrap();
         assert_eq!(row.time_s, e["time"].as_f64().unwrap());
         assert!((row.time_s - f64::from(f) / 24.0).abs() < 1e-9);
         let k = &e["intrinsic"];
@@ -79,14 +94,31 @@ fn fixture_scene_cameras_frames_and_masks() {
         let c2w = &e["c2w"];
         for i in 0..3 {
             // Camera centre unchanged; OpenCV forward (+z) = OpenGL −z; OpenCV y = OpenGL −y.
-            assert_eq!(row.world_from_camera[i * 4 + 3], c2w[i][3].as_f64().unwrap());
-            assert_eq!(row.world_from_camera[i * 4 + 2], -c2w[i][2].as_f64().unwrap());
-            assert_eq!(row.world_from_camera[i * 4 + 1], -c2w[i][1].as_f64().unwrap());
+            assert_eq!(
+                row.world_from_camera[i * 4 + 3],
+                c2w[i][3].as_f64().unwrap()
+            );
+            assert_eq!(
+                row.world_from_camera[i * 4 + 2],
+                -c2w[i][2].as_f64().unwrap()
+            );
+            assert_eq!(
+                row.world_from_camera[i * 4 + 1],
+                -c2w[i][1].as_f64().unwrap()
+            );
         }
     }
     // One camera centre, written out: camera 0's position from the JSON.
-    let r0 = frames.rows.iter().find(|r| r.view == 0 && r.frame == 0).unwrap();
-    let c = [r0.world_from_camera[3], r0.world_from_camera[7], r0.world_from_camera[11]];
+    let r0 = frames
+        .rows
+        .iter()
+        .find(|r| r.view == 0 && r.frame == 0)
+        .unwrap();
+    let c = [
+        r0.world_from_camera[3],
+        r0.world_from_camera[7],
+        r0.world_from_camera[11],
+    ];
     assert!((c[0] - 1.5428721795140405).abs() < 1e-12 && (c[1] - 0.6779698757234115).abs() < 1e-12);
 
     // Masks against ground truth, computed here from the written PNGs.
@@ -115,7 +147,12 @@ fn fixture_scene_cameras_frames_and_masks() {
     assert!(min >= 0.90, "min IoU {min:.4}");
     // The stage reports the same numbers in its metrics.
     let m: Metrics = table::read(&entry.join("metrics.arrow")).unwrap();
-    let reported = m.rows.iter().find(|r| r.metric == "mask_iou_mean").unwrap().value;
+    let reported = m
+        .rows
+        .iter()
+        .find(|r| r.metric == "mask_iou_mean")
+        .unwrap()
+        .value;
     assert!((reported - mean).abs() < 1e-9, "{reported} vs {mean}");
 }
 
@@ -129,14 +166,21 @@ fn small_copy() -> tempfile::TempDir {
         .into_iter()
         .filter(|e| {
             let n = e["file_path"].as_str().unwrap();
-            ["r_0_", "r_1_"].iter().any(|p| n.contains(p)) && ["_-1.png", "_0.png", "_1.png"].iter().any(|s| n.ends_with(s))
+            ["r_0_", "r_1_"].iter().any(|p| n.contains(p))
+                && ["_-1.png", "_0.png", "_1.png"]
+                    .iter()
+                    .any(|s| n.ends_with(s))
         })
         .collect();
     for e in &keep {
         let rel = e["file_path"].as_str().unwrap().trim_start_matches("./");
         std::fs::copy(fixture().join(rel), dir.path().join(rel)).unwrap();
     }
-    std::fs::write(dir.path().join("all_data.json"), serde_json::to_string(&keep).unwrap()).unwrap();
+    std::fs::write(
+        dir.path().join("all_data.json"),
+        serde_json::to_string(&keep).unwrap(),
+    )
+    .unwrap();
     dir
 }
 
@@ -147,7 +191,8 @@ fn ingest_err(scene: &Path) -> String {
 
 fn edit_json(dir: &Path, f: impl FnOnce(&mut Vec<serde_json::Value>)) {
     let p = dir.join("all_data.json");
-    let mut v: Vec<serde_json::Value> = serde_json::from_slice(&std::fs::read(&p).unwrap()).unwrap();
+    let mut v: Vec<serde_json::Value> =
+        serde_json::from_slice(&std::fs::read(&p).unwrap()).unwrap();
     f(&mut v);
     std::fs::write(&p, serde_json::to_string(&v).unwrap()).unwrap();
 }
@@ -164,21 +209,31 @@ fn missing_image_is_named() {
     let d = small_copy();
     std::fs::remove_file(d.path().join("data/r_1_1.png")).unwrap();
     let e = ingest_err(d.path());
-    assert!(e.contains("data/r_1_1.png") && e.contains("No such file"), "{e}");
+    assert!(
+        e.contains("data/r_1_1.png") && e.contains("No such file"),
+        "{e}"
+    );
 }
 
 #[test]
 fn image_of_another_size_is_named() {
     let d = small_copy();
-    image::RgbImage::new(64, 48).save(d.path().join("data/r_0_1.png")).unwrap();
+    image::RgbImage::new(64, 48)
+        .save(d.path().join("data/r_0_1.png"))
+        .unwrap();
     let e = ingest_err(d.path());
-    assert!(e.contains("r_0_1.png: image is 64×48, but the plate of camera 0 is 100×100"), "{e}");
+    assert!(
+        e.contains("r_0_1.png: image is 64×48, but the plate of camera 0 is 100×100"),
+        "{e}"
+    );
 }
 
 #[test]
 fn camera_without_plate_is_refused() {
     let d = small_copy();
-    edit_json(d.path(), |v| v.retain(|e| e["file_path"] != "./data/r_1_-1.png"));
+    edit_json(d.path(), |v| {
+        v.retain(|e| e["file_path"] != "./data/r_1_-1.png")
+    });
     let e = ingest_err(d.path());
     assert!(e.contains("camera 1 has no background plate"), "{e}");
 }
@@ -191,9 +246,14 @@ fn bad_matrices_and_json_are_named() {
     assert!(e.contains("all_data.json") && e.contains("c2w"), "{e}");
 
     let d = small_copy();
-    edit_json(d.path(), |v| v[2]["c2w"] = serde_json::json!([[1, 0, 0, 0], [0, 1, 0, 0]]));
+    edit_json(d.path(), |v| {
+        v[2]["c2w"] = serde_json::json!([[1, 0, 0, 0], [0, 1, 0, 0]])
+    });
     let e = ingest_err(d.path());
-    assert!(e.contains("field `c2w`: expected a 3×4 or 4×4 matrix, found 2 rows"), "{e}");
+    assert!(
+        e.contains("field `c2w`: expected a 3×4 or 4×4 matrix, found 2 rows"),
+        "{e}"
+    );
 
     let d = small_copy();
     let p = d.path().join("all_data.json");
@@ -206,9 +266,14 @@ fn bad_matrices_and_json_are_named() {
     assert!(e.contains("all_data.json") && e.contains("line 1"), "{e}");
 
     let d = small_copy();
-    edit_json(d.path(), |v| v[0]["intrinsic"][0][0] = serde_json::json!(0.0));
+    edit_json(d.path(), |v| {
+        v[0]["intrinsic"][0][0] = serde_json::json!(0.0)
+    });
     let e = ingest_err(d.path());
-    assert!(e.contains("field `intrinsic`: focal lengths must be positive, found fx = 0"), "{e}");
+    assert!(
+        e.contains("field `intrinsic`: focal lengths must be positive, found fx = 0"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -216,7 +281,10 @@ fn four_by_four_poses_are_accepted() {
     let d = small_copy();
     edit_json(d.path(), |v| {
         for e in v.iter_mut() {
-            e["c2w"].as_array_mut().unwrap().push(serde_json::json!([0, 0, 0, 1]));
+            e["c2w"]
+                .as_array_mut()
+                .unwrap()
+                .push(serde_json::json!([0, 0, 0, 1]));
         }
     });
     let (_w, r) = ingest(d.path(), "[1]");
@@ -228,5 +296,8 @@ fn unknown_test_view_is_refused() {
     let d = small_copy();
     let (_w, r) = ingest(d.path(), "[10]");
     let e = r.unwrap_err().to_string();
-    assert!(e.contains("scene.test_views: camera 10 is not in") && e.contains("cameras: 0, 1"), "{e}");
+    assert!(
+        e.contains("scene.test_views: camera 10 is not in") && e.contains("cameras: 0, 1"),
+        "{e}"
+    );
 }

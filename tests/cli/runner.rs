@@ -18,7 +18,11 @@ fn value_of(f: &Fixture, stage: &str) -> i64 {
     let (_, planned) = f.ws().plan(&f.load(), &registry()).unwrap();
     let p = planned.iter().find(|p| p.name == stage).unwrap();
     let dir = f.ws().store.entry_dir(stage, &p.key);
-    std::fs::read_to_string(dir.join("out.txt")).unwrap().trim().parse().unwrap()
+    std::fs::read_to_string(dir.join("out.txt"))
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap()
 }
 
 #[test]
@@ -69,16 +73,31 @@ fn aborted_stage_leaves_no_valid_entry_and_the_rerun_completes() {
     let out = f.child_output(&["run", &file], &[("PIPE_TEST_ABORT", "double")]);
     assert!(!out.status.success(), "the child should have aborted");
     let st = states(&f);
-    assert!(matches!(st[0].1, StageState::Cached(_)), "source committed before the abort: {st:?}");
-    assert!(!matches!(st[1].1, StageState::Cached(_)), "double must not look cached: {st:?}");
+    assert!(
+        matches!(st[0].1, StageState::Cached(_)),
+        "source committed before the abort: {st:?}"
+    );
+    assert!(
+        !matches!(st[1].1, StageState::Cached(_)),
+        "double must not look cached: {st:?}"
+    );
     // No entry directory for double exists at all, valid or not.
     let entries = f.ws().store.entries().unwrap();
-    assert!(entries.iter().all(|e| !e.starts_with("double-")), "{entries:?}");
+    assert!(
+        entries.iter().all(|e| !e.starts_with("double-")),
+        "{entries:?}"
+    );
     let rerun = f.run(&RunOptions::default()).unwrap();
     assert_eq!(rerun.executed(), ["double", "sum"]);
     assert_eq!(value_of(&f, "sum"), 15);
     // The temp directory of the killed run was cleared.
-    assert!(!f.dir.path().join(".pipe/tmp").exists() || std::fs::read_dir(f.dir.path().join(".pipe/tmp")).unwrap().next().is_none());
+    assert!(
+        !f.dir.path().join(".pipe/tmp").exists()
+            || std::fs::read_dir(f.dir.path().join(".pipe/tmp"))
+                .unwrap()
+                .next()
+                .is_none()
+    );
 }
 
 #[test]
@@ -86,14 +105,21 @@ fn corrupted_output_is_detected_named_and_rerun() {
     let f = Fixture::new(&pipeline_text(5, 2));
     f.run(&RunOptions::default()).unwrap();
     let (_, planned) = f.ws().plan(&f.load(), &registry()).unwrap();
-    let out = f.ws().store.entry_dir("source", &planned[0].key).join("out.txt");
+    let out = f
+        .ws()
+        .store
+        .entry_dir("source", &planned[0].key)
+        .join("out.txt");
     let mut bytes = std::fs::read(&out).unwrap();
     bytes[0] ^= 0x01;
     std::fs::write(&out, bytes).unwrap();
     match &states(&f)[0].1 {
         StageState::Stale(r) => {
             assert_eq!(r.len(), 1);
-            assert!(r[0].contains("out.txt") && r[0].contains("does not match the manifest"), "{r:?}");
+            assert!(
+                r[0].contains("out.txt") && r[0].contains("does not match the manifest"),
+                "{r:?}"
+            );
         }
         other => panic!("source should be stale, is {other:?}"),
     }
@@ -110,7 +136,10 @@ fn a_second_runner_on_the_same_workdir_is_refused() {
     let file = f.file().display().to_string();
     let mut child = f.child(
         &["run", &file],
-        &[("PIPE_TEST_HOLD_STAGE", "source"), ("PIPE_TEST_HOLD", hold.to_str().unwrap())],
+        &[
+            ("PIPE_TEST_HOLD_STAGE", "source"),
+            ("PIPE_TEST_HOLD", hold.to_str().unwrap()),
+        ],
     );
     wait_for(&hold.with_extension("started"));
     let err = f.run(&RunOptions::default()).unwrap_err();
@@ -130,33 +159,68 @@ fn ctrl_c_stops_cleanly_without_committing_the_stage() {
     let file = f.file().display().to_string();
     let child = f.child(
         &["run", &file],
-        &[("PIPE_TEST_HOLD_STAGE", "double"), ("PIPE_TEST_HOLD", hold.to_str().unwrap())],
+        &[
+            ("PIPE_TEST_HOLD_STAGE", "double"),
+            ("PIPE_TEST_HOLD", hold.to_str().unwrap()),
+        ],
     );
     wait_for(&hold.with_extension("started"));
     let pid = child.id().to_string();
-    assert!(std::process::Command::new("kill").args(["-INT", &pid]).status().unwrap().success());
+    assert!(
+        std::process::Command::new("kill")
+            .args(["-INT", &pid])
+            .status()
+            .unwrap()
+            .success()
+    );
     let out = child.wait_with_output().unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(130), "{stderr}");
-    assert!(stderr.contains("interrupted during stage `double`"), "{stderr}");
+    assert!(
+        stderr.contains("interrupted during stage `double`"),
+        "{stderr}"
+    );
     let st = states(&f);
     assert!(matches!(st[0].1, StageState::Cached(_)));
     assert_eq!(st[1].1, StageState::NotRun);
-    assert_eq!(f.run(&RunOptions::default()).unwrap().executed(), ["double", "sum"]);
+    assert_eq!(
+        f.run(&RunOptions::default()).unwrap().executed(),
+        ["double", "sum"]
+    );
 }
 
 #[test]
 fn from_until_and_force_select_the_right_stages() {
     let f = Fixture::new(&pipeline_text(5, 2));
-    let until = f.run(&RunOptions { until: Some("double".into()), ..Default::default() }).unwrap();
+    let until = f
+        .run(&RunOptions {
+            until: Some("double".into()),
+            ..Default::default()
+        })
+        .unwrap();
     assert_eq!(until.executed(), ["source", "double"]);
     let all = f.run(&RunOptions::default()).unwrap();
     assert_eq!(all.executed(), ["sum"]);
-    let from = f.run(&RunOptions { from: Some("double".into()), ..Default::default() }).unwrap();
+    let from = f
+        .run(&RunOptions {
+            from: Some("double".into()),
+            ..Default::default()
+        })
+        .unwrap();
     assert_eq!(from.executed(), ["double", "sum"]);
-    let force = f.run(&RunOptions { force: vec!["source".into()], ..Default::default() }).unwrap();
+    let force = f
+        .run(&RunOptions {
+            force: vec!["source".into()],
+            ..Default::default()
+        })
+        .unwrap();
     assert_eq!(force.executed(), ["source"]);
-    let bad = f.run(&RunOptions { from: Some("dubble".into()), ..Default::default() }).unwrap_err();
+    let bad = f
+        .run(&RunOptions {
+            from: Some("dubble".into()),
+            ..Default::default()
+        })
+        .unwrap_err();
     assert!(bad.to_string().contains("no stage `dubble`"), "{bad}");
 }
 
@@ -169,7 +233,11 @@ fn clean_drops_only_unreferenced_entries() {
     assert_eq!(f.ws().store.entries().unwrap().len(), 5);
     let removed = f.ws().clean(&registry(), false).unwrap();
     assert_eq!(removed.len(), 2, "{removed:?}");
-    assert!(removed.iter().all(|r| r.starts_with("double-") || r.starts_with("sum-")));
+    assert!(
+        removed
+            .iter()
+            .all(|r| r.starts_with("double-") || r.starts_with("sum-"))
+    );
     assert!(f.run(&RunOptions::default()).unwrap().executed().is_empty());
     let all = f.ws().clean(&registry(), true).unwrap();
     assert_eq!(all.len(), 3);
@@ -182,13 +250,28 @@ fn status_and_run_through_the_cli() {
     let out = f.child_output(&["status", &file], &[]);
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success());
-    assert_eq!(text.lines().filter(|l| l.contains("not run")).count(), 3, "{text}");
+    assert_eq!(
+        text.lines().filter(|l| l.contains("not run")).count(),
+        3,
+        "{text}"
+    );
     let out = f.child_output(&["run", &file, "--set", "double.factor=4"], &[]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let out = f.child_output(&["status", &file], &[]);
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(text.lines().any(|l| l.contains("source") && l.contains("cached")), "{text}");
-    assert!(text.contains("param `double.factor` changed 4 → 2"), "{text}");
+    assert!(
+        text.lines()
+            .any(|l| l.contains("source") && l.contains("cached")),
+        "{text}"
+    );
+    assert!(
+        text.contains("param `double.factor` changed 4 → 2"),
+        "{text}"
+    );
     let out = f.child_output(&["run", &file, "--preset", "nope"], &[]);
     assert_eq!(out.status.code(), Some(2));
 }

@@ -11,7 +11,12 @@ use pipe::pipeline::spec::{self, Overrides, Preset};
 use crate::support::registry;
 
 fn parse(text: &str) -> Result<spec::Pipeline, spec::SpecError> {
-    spec::parse(Path::new("pipelines/t.yaml"), text, &registry(), &Overrides::default())
+    spec::parse(
+        Path::new("pipelines/t.yaml"),
+        text,
+        &registry(),
+        &Overrides::default(),
+    )
 }
 
 fn err(text: &str) -> String {
@@ -23,7 +28,9 @@ const HEAD: &str = "name: t\nscene:\n  dataset: pacnerf\n  path: .\n";
 
 #[test]
 fn unknown_key_names_file_line_column_and_the_nearest_key() {
-    let e = err(&format!("{HEAD}stages:\n  source: {{value: 1}}\n  double:\n    factr: 3\n"));
+    let e = err(&format!(
+        "{HEAD}stages:\n  source: {{value: 1}}\n  double:\n    factr: 3\n"
+    ));
     assert_eq!(
         e,
         "pipelines/t.yaml: unknown key `factr` in stages.double at line 8:5; did you mean `factor`?"
@@ -33,32 +40,47 @@ fn unknown_key_names_file_line_column_and_the_nearest_key() {
 #[test]
 fn unknown_top_level_key() {
     let e = err(&format!("{HEAD}stagez: {{}}\n"));
-    assert!(e.contains("unknown key `stagez` at the top level at line 5:1; did you mean `stages`?"), "{e}");
+    assert!(
+        e.contains("unknown key `stagez` at the top level at line 5:1; did you mean `stages`?"),
+        "{e}"
+    );
 }
 
 #[test]
 fn unknown_scene_key() {
     let e = err("name: t\nscene:\n  dataset: pacnerf\n  pth: .\nstages: {source: {value: 1}}\n");
-    assert!(e.contains("unknown key `pth` in scene at line 4:3; did you mean `path`?"), "{e}");
+    assert!(
+        e.contains("unknown key `pth` in scene at line 4:3; did you mean `path`?"),
+        "{e}"
+    );
 }
 
 #[test]
 fn wrong_type_names_the_value_and_line() {
     let e = err(&format!("{HEAD}stages:\n  source:\n    value: lots\n"));
-    assert!(e.contains("stages.source.value: invalid type: string \"lots\""), "{e}");
+    assert!(
+        e.contains("stages.source.value: invalid type: string \"lots\""),
+        "{e}"
+    );
     assert!(e.contains("at line 7:12"), "{e}");
 }
 
 #[test]
 fn malformed_yaml_has_a_position() {
     let e = err(&format!("{HEAD}stages:\n  source: {{value: 1\n"));
-    assert!(e.starts_with("pipelines/t.yaml: ") && e.contains(" at line "), "{e}");
+    assert!(
+        e.starts_with("pipelines/t.yaml: ") && e.contains(" at line "),
+        "{e}"
+    );
 }
 
 #[test]
 fn unknown_stage_suggests_the_nearest() {
     let e = err(&format!("{HEAD}stages:\n  sorce: {{value: 1}}\n"));
-    assert!(e.contains("unknown stage `sorce` in stages at line 6:3; did you mean `source`?"), "{e}");
+    assert!(
+        e.contains("unknown stage `sorce` in stages at line 6:3; did you mean `source`?"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -77,39 +99,70 @@ fn cycles_and_bad_needs_are_reported() {
     );
     let p = parse(&text).unwrap();
     let e = Graph::build(&p, &registry()).unwrap_err().to_string();
-    assert!(e.contains("the stages form a cycle: source -> double -> sum -> source"), "{e}");
+    assert!(
+        e.contains("the stages form a cycle: source -> double -> sum -> source"),
+        "{e}"
+    );
     let text = format!("{HEAD}stages:\n  source: {{value: 1}}\n  double: {{needs: [sorce]}}\n");
     let p = parse(&text).unwrap();
     let e = Graph::build(&p, &registry()).unwrap_err().to_string();
-    assert!(e.contains("needs `sorce`, which is not a stage of this pipeline") && e.contains("did you mean `source`?"), "{e}");
+    assert!(
+        e.contains("needs `sorce`, which is not a stage of this pipeline")
+            && e.contains("did you mean `source`?"),
+        "{e}"
+    );
 }
 
 #[test]
 fn precedence_is_defaults_preset_file_then_set() {
-    let text = format!("{HEAD}preset: draft\nstages:\n  source: {{value: 1}}\n  double: {{}}\n  sum: {{}}\n");
+    let text = format!(
+        "{HEAD}preset: draft\nstages:\n  source: {{value: 1}}\n  double: {{}}\n  sum: {{}}\n"
+    );
     let p = parse(&text).unwrap();
     assert_eq!(p.preset, Preset::Draft);
-    assert_eq!(p.stage("double").unwrap().params["factor"], 2, "draft preset sets factor 2");
+    assert_eq!(
+        p.stage("double").unwrap().params["factor"],
+        2,
+        "draft preset sets factor 2"
+    );
     assert_eq!(p.stage("sum").unwrap().params["factor"], 1, "serde default");
     let std = spec::parse(
         Path::new("t.yaml"),
         &text,
         &registry(),
-        &Overrides { preset: Some(Preset::Standard), sets: vec![] },
+        &Overrides {
+            preset: Some(Preset::Standard),
+            sets: vec![],
+        },
     )
     .unwrap();
-    assert_eq!(std.stage("double").unwrap().params["factor"], 1, "--preset overrides the file's");
+    assert_eq!(
+        std.stage("double").unwrap().params["factor"],
+        1,
+        "--preset overrides the file's"
+    );
     let text2 = text.replace("double: {}", "double: {factor: 7}");
     let p = parse(&text2).unwrap();
-    assert_eq!(p.stage("double").unwrap().params["factor"], 7, "file beats preset");
+    assert_eq!(
+        p.stage("double").unwrap().params["factor"],
+        7,
+        "file beats preset"
+    );
     let p = spec::parse(
         Path::new("t.yaml"),
         &text2,
         &registry(),
-        &Overrides { preset: None, sets: vec!["double.factor=9".into(), "scene.test_views=[3, 4]".into()] },
+        &Overrides {
+            preset: None,
+            sets: vec!["double.factor=9".into(), "scene.test_views=[3, 4]".into()],
+        },
     )
     .unwrap();
-    assert_eq!(p.stage("double").unwrap().params["factor"], 9, "--set beats the file");
+    assert_eq!(
+        p.stage("double").unwrap().params["factor"],
+        9,
+        "--set beats the file"
+    );
     assert_eq!(p.scene.test_views, vec![3, 4]);
 }
 
@@ -117,24 +170,47 @@ fn precedence_is_defaults_preset_file_then_set() {
 fn bad_overrides_are_precise() {
     let text = format!("{HEAD}stages:\n  source: {{value: 1}}\n  double: {{}}\n");
     let set = |s: &str| {
-        spec::parse(Path::new("t.yaml"), &text, &registry(), &Overrides { preset: None, sets: vec![s.into()] })
-            .unwrap_err()
-            .to_string()
+        spec::parse(
+            Path::new("t.yaml"),
+            &text,
+            &registry(),
+            &Overrides {
+                preset: None,
+                sets: vec![s.into()],
+            },
+        )
+        .unwrap_err()
+        .to_string()
     };
     assert!(set("double.factor").contains("missing `=`"));
     assert!(set("double=3").contains("the key must be stage.key"));
     let e = set("dubble.factor=3");
-    assert!(e.contains("no stage `dubble`") && e.contains("did you mean `double`?"), "{e}");
+    assert!(
+        e.contains("no stage `dubble`") && e.contains("did you mean `double`?"),
+        "{e}"
+    );
     let e = set("double.factr=3");
-    assert!(e.contains("unknown key `factr` in stages.double (from --set double.factr=3)"), "{e}");
+    assert!(
+        e.contains("unknown key `factr` in stages.double (from --set double.factr=3)"),
+        "{e}"
+    );
     assert!(e.contains("did you mean `factor`?"), "{e}");
     let e = set("double.factor=abc");
-    assert!(e.contains("invalid type") && e.contains("from --set double.factor=abc"), "{e}");
+    assert!(
+        e.contains("invalid type") && e.contains("from --set double.factor=abc"),
+        "{e}"
+    );
 }
 
 #[test]
 fn relative_scene_path_is_anchored_at_the_file() {
-    let p = spec::parse(Path::new("dir/sub/p.yaml"), &format!("{HEAD}stages: {{source: {{value: 1}}}}\n"), &registry(), &Overrides::default()).unwrap();
+    let p = spec::parse(
+        Path::new("dir/sub/p.yaml"),
+        &format!("{HEAD}stages: {{source: {{value: 1}}}}\n"),
+        &registry(),
+        &Overrides::default(),
+    )
+    .unwrap();
     assert_eq!(p.scene.path, Path::new("dir/sub/."));
 }
 
@@ -155,5 +231,8 @@ fn committed_pipeline_schema_matches_the_code() {
     for stage in pipe::stages::builtin().iter() {
         assert!(generated["properties"]["stages"]["properties"][stage.kind()].is_object());
     }
-    assert_eq!(generated["properties"]["stages"]["properties"]["ingest"]["properties"]["matte"]["$ref"], "#/$defs/MatteMode");
+    assert_eq!(
+        generated["properties"]["stages"]["properties"]["ingest"]["properties"]["matte"]["$ref"],
+        "#/$defs/MatteMode"
+    );
 }

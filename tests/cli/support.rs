@@ -48,8 +48,11 @@ fn test_hooks(ctx: &StageContext<'_>) -> Result<(), StageError> {
     }
     if std::env::var("PIPE_TEST_HOLD_STAGE").ok().as_deref() == Some(ctx.name) {
         let release = PathBuf::from(std::env::var("PIPE_TEST_HOLD").expect("hold file"));
-        std::fs::write(release.with_extension("started"), std::process::id().to_string())
-            .map_err(StageError::failed)?;
+        std::fs::write(
+            release.with_extension("started"),
+            std::process::id().to_string(),
+        )
+        .map_err(StageError::failed)?;
         while !release.exists() {
             ctx.check_interrupted()?;
             std::thread::sleep(Duration::from_millis(10));
@@ -60,7 +63,11 @@ fn test_hooks(ctx: &StageContext<'_>) -> Result<(), StageError> {
 }
 
 fn read_value(dir: &Path) -> i64 {
-    std::fs::read_to_string(dir.join("out.txt")).unwrap().trim().parse().unwrap()
+    std::fs::read_to_string(dir.join("out.txt"))
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap()
 }
 
 /// Source stage.
@@ -101,7 +108,8 @@ impl TypedStage for Double {
     fn run(&self, p: &FactorParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
         test_hooks(ctx)?;
         let v = read_value(&ctx.upstream("source")?.dir);
-        std::fs::write(ctx.out_dir.join("out.txt"), (v * p.factor).to_string()).map_err(StageError::failed)
+        std::fs::write(ctx.out_dir.join("out.txt"), (v * p.factor).to_string())
+            .map_err(StageError::failed)
     }
 }
 
@@ -120,7 +128,8 @@ impl TypedStage for Sum {
     fn run(&self, p: &FactorParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
         test_hooks(ctx)?;
         let total: i64 = ctx.upstream.values().map(|u| read_value(&u.dir)).sum();
-        std::fs::write(ctx.out_dir.join("out.txt"), (total * p.factor).to_string()).map_err(StageError::failed)
+        std::fs::write(ctx.out_dir.join("out.txt"), (total * p.factor).to_string())
+            .map_err(StageError::failed)
     }
 }
 
@@ -168,17 +177,34 @@ impl Fixture {
     /// Run in this process.
     pub fn run(&self, options: &RunOptions) -> Result<RunReport, RunError> {
         let stop = std::sync::atomic::AtomicBool::new(false);
-        self.ws().run(&self.load(), &registry(), options, &Reporter::new(Mode::Quiet), &stop, "test")
+        self.ws().run(
+            &self.load(),
+            &registry(),
+            options,
+            &Reporter::new(Mode::Quiet),
+            &stop,
+            "test",
+        )
     }
     /// Run `pipe ARGS` (test registry) in a child process with extra environment.
     pub fn child(&self, args: &[&str], env: &[(&str, &str)]) -> std::process::Child {
-        let mut all = vec!["pipe".to_string(), "--workdir".into(), self.dir.path().display().to_string()];
+        let mut all = vec![
+            "pipe".to_string(),
+            "--workdir".into(),
+            self.dir.path().display().to_string(),
+        ];
         all.extend(args.iter().map(|s| s.to_string()));
         let mut cmd = Command::new(std::env::current_exe().unwrap());
-        cmd.args(["--exact", "support::child_main", "--ignored", "--nocapture", "--test-threads=1"])
-            .env("PIPE_CHILD_ARGS", all.join("\u{1f}"))
-            .stdout(std::process::Stdio::piped())
-            .stderr(std::process::Stdio::piped());
+        cmd.args([
+            "--exact",
+            "support::child_main",
+            "--ignored",
+            "--nocapture",
+            "--test-threads=1",
+        ])
+        .env("PIPE_CHILD_ARGS", all.join("\u{1f}"))
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped());
         for (k, v) in env {
             cmd.env(k, v);
         }
@@ -194,7 +220,11 @@ impl Fixture {
 pub fn wait_for(path: &Path) {
     let t = Instant::now();
     while !path.exists() {
-        assert!(t.elapsed() < Duration::from_secs(60), "timed out waiting for {}", path.display());
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "timed out waiting for {}",
+            path.display()
+        );
         std::thread::sleep(Duration::from_millis(10));
     }
 }

@@ -39,7 +39,10 @@ fn tables_round_trip() {
     let dir = tempfile::tempdir().unwrap();
     let f = frames();
     table::write(&dir.path().join("frames.arrow"), &f).unwrap();
-    assert_eq!(table::read::<Frames>(&dir.path().join("frames.arrow")).unwrap(), f);
+    assert_eq!(
+        table::read::<Frames>(&dir.path().join("frames.arrow")).unwrap(),
+        f
+    );
 
     for degree in 0..=3u8 {
         let n = 5;
@@ -62,12 +65,27 @@ fn tables_round_trip() {
     let m = Metrics {
         stage: "warmup".into(),
         rows: vec![
-            MetricRow { epoch: Some(3), view: None, frame: Some(0), metric: "psnr".into(), value: 31.5 },
-            MetricRow { epoch: None, view: Some(10), frame: None, metric: "ssim".into(), value: 0.97 },
+            MetricRow {
+                epoch: Some(3),
+                view: None,
+                frame: Some(0),
+                metric: "psnr".into(),
+                value: 31.5,
+            },
+            MetricRow {
+                epoch: None,
+                view: Some(10),
+                frame: None,
+                metric: "ssim".into(),
+                value: 0.97,
+            },
         ],
     };
     table::write(&dir.path().join("m.arrow"), &m).unwrap();
-    assert_eq!(table::read::<Metrics>(&dir.path().join("m.arrow")).unwrap(), m);
+    assert_eq!(
+        table::read::<Metrics>(&dir.path().join("m.arrow")).unwrap(),
+        m
+    );
 }
 
 fn write_batch(path: &Path, batch: &RecordBatch) {
@@ -82,27 +100,43 @@ fn schema_mismatch_names_the_column() {
     let dir = tempfile::tempdir().unwrap();
     // A `frames` file whose `fx` is missing.
     let full = frames().to_batch();
-    let keep: Vec<usize> = (0..full.num_columns()).filter(|&i| full.schema().field(i).name() != "fx").collect();
+    let keep: Vec<usize> = (0..full.num_columns())
+        .filter(|&i| full.schema().field(i).name() != "fx")
+        .collect();
     let p = dir.path().join("no_fx.arrow");
     write_batch(&p, &full.project(&keep).unwrap());
     match table::read::<Frames>(&p) {
         Err(e @ TableError::MissingColumn { .. }) => {
-            assert!(e.to_string().contains("column `fx` is missing (expected Float64)"), "{e}")
+            assert!(
+                e.to_string()
+                    .contains("column `fx` is missing (expected Float64)"),
+                "{e}"
+            )
         }
         other => panic!("expected a missing column, got {other:?}"),
     }
     // `view` stored as f32 instead of u16.
     let schema = Schema::new(vec![Field::new("view", DataType::Float32, false)]);
-    let b = RecordBatch::try_new(Arc::new(schema), vec![Arc::new(Float32Array::from(vec![1.0f32]))]).unwrap();
+    let b = RecordBatch::try_new(
+        Arc::new(schema),
+        vec![Arc::new(Float32Array::from(vec![1.0f32]))],
+    )
+    .unwrap();
     let p = dir.path().join("bad_view.arrow");
     write_batch(&p, &b);
     let e = table::read::<Frames>(&p).unwrap_err().to_string();
-    assert!(e.contains("column `view` has type Float32, expected UInt16"), "{e}");
+    assert!(
+        e.contains("column `view` has type Float32, expected UInt16"),
+        "{e}"
+    );
     // Not an Arrow file at all.
     let p = dir.path().join("junk.arrow");
     std::fs::write(&p, b"not arrow").unwrap();
     let e = table::read::<Frames>(&p).unwrap_err().to_string();
-    assert!(e.contains("junk.arrow: not a readable Arrow IPC file"), "{e}");
+    assert!(
+        e.contains("junk.arrow: not a readable Arrow IPC file"),
+        "{e}"
+    );
     let _ = UInt16Array::from(vec![1u16]);
 }
 

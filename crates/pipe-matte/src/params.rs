@@ -1,0 +1,47 @@
+//! Tunable thresholds of the matting pipeline.
+
+/// Thresholds of [`crate::matte`]. `Default` holds the values tuned on the synthetic
+/// PAC-NeRF scenes (200x200 and 2x downscaled).
+#[derive(Debug, Clone, PartialEq)]
+pub struct MatteParams {
+    /// A pixel is a change candidate iff `max_c |I_c - B_c| > change_threshold`
+    /// (8-bit units). Absorbs the path tracer's noise between frame and plate.
+    pub change_threshold: u8,
+    /// Offset `k` in the shadow ratio `(I_c + k) / (B_c + k)`; keeps near-black pixels
+    /// from producing huge log-ratios. Non-positive values are treated as tiny.
+    pub ratio_offset: f32,
+    /// A changed pixel is shadow only if its per-channel log-ratios
+    /// `l_c = ln((I_c + k) / (B_c + k))` differ by less than this (`max_c l_c - min_c l_c`):
+    /// a shadow dims all channels by a similar factor.
+    pub shadow_max_spread: f32,
+    /// A changed pixel is shadow only if also its mean log-ratio `mean_c l_c` is below
+    /// this: a shadow darkens (or keeps) the plate, it never brightens it.
+    pub shadow_max_log_gain: f32,
+    /// Apply the 3x3 majority vote (removes speckles, smooths the outline).
+    pub majority_filter: bool,
+    /// Object components (4-connected) smaller than this many pixels are dropped
+    /// (one 200x200 object covers ~2000 pixels, ~500 after a 2x downscale).
+    pub min_component_area: usize,
+    /// Background holes enclosed by object with at most this many pixels are filled.
+    /// Keep it small: real holes (a torus seen face-on) must survive.
+    pub max_hole_area: usize,
+    /// Outline pixels (object pixels with a background 4-neighbour) are kept only if
+    /// `max_c |I_c - B_c| > boundary_change_threshold`; values not above
+    /// `change_threshold` disable the peel.
+    pub boundary_change_threshold: u8,
+}
+
+impl Default for MatteParams {
+    fn default() -> Self {
+        Self {
+            change_threshold: 12,
+            ratio_offset: 4.0,
+            shadow_max_spread: 0.15,
+            shadow_max_log_gain: 0.05,
+            majority_filter: true,
+            min_component_area: 20,
+            max_hole_area: 4,
+            boundary_change_threshold: 24,
+        }
+    }
+}
