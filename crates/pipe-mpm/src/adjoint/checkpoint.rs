@@ -1,0 +1,182 @@
+//! Checkpointed backpropagation over many substeps.
+//!
+//! The forward pass keeps the state every `every` substeps (a frame boundary); the backward pass
+//! recomputes the states inside one segment at a time, so memory is
+//! O((n/every + every) · particles), never O(substeps · particles).
+
+use super::AdjointWork;
+use crate::error::MpmError;
+use crate::models::Constitutive;
+use crate::sim::{RunReport, Simulator, Work};
+use crate::state::{Material, MaterialGrad, State, StateGrad};
+
+/// States at segment boundaries of a forward run.
+#[derive(Debug, Clone)]
+pub struct Tape {
+    /// Start time (s).
+    pub t0: f64,
+    /// Substeps run.
+    pub n_substeps: usize,
+    /// Substeps per segment (checkpoint interval).
+    pub every: usize,
+    /// `checkpoints[j]` = state at substep `j·every`.
+    pub checkpoints: Vec<State>,
+    /// State after the last substep.
+    pub final_state: State,
+    /// Forward statistics.
+    pub report: RunReport,
+}
+
+/// Options of [`Simulator::backward`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct BackwardOptions {
+    /// Backpropagate through only the last `n` substeps (e.g. one frame); `None` = all.
+    pub truncate: Option<usize>,
+}
+
+/// Result of [`Simulator::backward`].
+#[derive(Debug, Clone)]
+pub struct Gradients {
+    /// `∂L/∂(state at substep start)`.
+    pub state: StateGrad,
+    /// Substep the state gradient refers to (0 unless truncated).
+    pub start: usize,
+    /// Material and family gradients.
+    pub material: MaterialGrad,
+}
+
+impl<M: Constitutive> Simulator<M> {
+    /// Runs `n_substeps` from `state` (advanced in place) keeping a checkpoint every `every`.
+    pub fn forward_tape(
+        &self,
+        state: &mut State,
+        mat: &Material,
+        t0: f64,
+        n_substeps: usize,
+        every: usize,
+    ) -> Result<Tape, MpmError> {
+        if every == 0 {
+            return Err(MpmError::InvalidParameter {
+                field: "every",
+                value: 0.0,
+                reason: "must be >= 1",
+            });
+        }
+        self.validate(state, mat)?;
+        let mut report = RunReport::default();
+        let h = self.hold_all(state);
+        report.held = h;
+        report.max_held = h;
+        let mut checkpoints = Vec::with_capacity(n_substeps.div_ceil(every));
+        let mut w = Work::default();
+        let mut next = state.clone();
+        for k in 0..n_substeps {
+            if k % every == 0 {
+                checkpoints.push(state.clone());
+            }
+            let held = self.forward(
+                state,
+                mat,
+                t0 + k as f64 * self.config.dt,
+                &mut next,
+                &mut w,
+            );
+            std::mem::swap(state, &mut next);
+            if let Some((quantity, particle)) = state.first_non_finite() {
+                return Err(MpmError::NonFinite {
+                    substep: k,
+                    quantity,
+                    particle,
+                });
+            }
+            report.substeps += 1;
+            report.held += held;
+            report.max_held = report.max_held.max(held);
+        }
+        Ok(Tape {
+            t0,
+            n_substeps,
+            every,
+            checkpoints,
+            final_state: state.clone(),
+            report,
+        })
+    }
+
+    /// Backpropagates through a tape. `seed(k, state_k)` returns `∂L/∂state_k` of the loss
+    /// terms at substep `k` (called for `k = n_substeps` down to the start; `None` = no term).
+    /// A non-finite gradient stops the pass with [`MpmError::NonFinite`] naming the substep.
+    pub fn backward(
+        &self,
+        tape: &Tape,
+        mat: &Material,
+        mut seed: impl FnMut(usize, &State) -> Option<StateGrad>,
+        opts: BackwardOptions,
+    ) -> Result<Gradients, MpmError> {
+        let n = tape.n_substeps;
+        let np = tape.final_state.len();
+        let mut g = seed(n, &tape.final_state).unwrap_or_else(|| StateGrad::zeros(np));
+        if g.len() != np {
+            return Err(MpmError::GradientMismatch(
+                "seed gradient length differs from the particle count",
+            ));
+        }
+        let start = n - opts.truncate.unwrap_or(n).min(n);
+        let mut gmat = MaterialGrad::zeros(np);
+        let dt = self.config.dt;
+        let mut aw = AdjointWork::default();
+        let mut w = Work::default();
+        for (j, ck) in tape.checkpoints.iter().enumerate().rev() {
+            let lo = j * tape.every;
+            let hi = (lo + tape.every).min(n);
+            if hi <= start {
+                break;
+            }
+            // Recompute the states of this segment.
+            let mut states = Vec::with_capacity(hi - lo);
+            states.push(ck.clone());
+            for k in lo..hi - 1 {
+                let mut next = ck.clone();
+                self.forward(
+                    &states[k - lo],
+                    mat,
+                    tape.t0 + k as f64 * dt,
+                    &mut next,
+                    &mut w,
+                );
+                states.push(next);
+            }
+            for k in (lo.max(start)..hi).rev() {
+                let s = &states[k - lo];
+                g = self.substep_backward_with(
+                    s,
+                    mat,
+                    tape.t0 + k as f64 * dt,
+                    &g,
+                    &mut gmat,
+                    &mut aw,
+                );
+                if let Some((quantity, particle)) = g.first_non_finite() {
+                    return Err(MpmError::NonFinite {
+                        substep: k,
+                        quantity,
+                        particle,
+                    });
+                }
+                if let Some(extra) = seed(k, s) {
+                    if extra.len() != np {
+                        return Err(MpmError::GradientMismatch(
+                            "seed gradient length differs from the particle count",
+                        ));
+                    }
+                    g.add_assign(&extra);
+                }
+            }
+        }
+        Ok(Gradients {
+            state: g,
+            start,
+            material: gmat,
+        })
+    }
+}

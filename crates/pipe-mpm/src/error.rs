@@ -1,0 +1,82 @@
+//! Typed errors of the simulator.
+
+/// Everything that can go wrong when building or running a simulation.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MpmError {
+    /// The particle set is empty.
+    #[error("empty particle set: at least one particle is required")]
+    EmptyParticles,
+    /// Per-particle arrays have different lengths.
+    #[error("field `{field}` has {len} entries, expected {expected} (one per particle)")]
+    LengthMismatch {
+        /// Field name.
+        field: &'static str,
+        /// Its length.
+        len: usize,
+        /// The particle count.
+        expected: usize,
+    },
+    /// A value is NaN or infinite.
+    #[error("field `{field}` of particle {index} is not finite ({value})")]
+    NonFiniteInput {
+        /// Field name.
+        field: &'static str,
+        /// Particle index (0 for scalars).
+        index: usize,
+        /// The offending value.
+        value: f64,
+    },
+    /// A parameter is outside its valid range.
+    #[error("invalid `{field}` = {value}: {reason}")]
+    InvalidParameter {
+        /// Parameter name.
+        field: &'static str,
+        /// The offending value.
+        value: f64,
+        /// The rule it breaks.
+        reason: &'static str,
+    },
+    /// A per-particle parameter is outside its valid range.
+    #[error("invalid `{field}` = {value} of particle {index}: {reason}")]
+    InvalidParticleParameter {
+        /// Parameter name.
+        field: &'static str,
+        /// Particle index.
+        index: usize,
+        /// The offending value.
+        value: f64,
+        /// The rule it breaks.
+        reason: &'static str,
+    },
+    /// A position lies outside the simulation domain where one is required inside.
+    #[error("particle {index} at {position:?} m lies outside the domain")]
+    OutsideDomain {
+        /// Particle index.
+        index: usize,
+        /// Its position (m).
+        position: [f64; 3],
+    },
+    /// A user-fixed time step breaks a stability limit.
+    #[error("dt = {dt:e} s exceeds the {limit} stability limit {max_dt:e} s")]
+    StepTooLarge {
+        /// Which limit (`"elastic wave (CFL)"`, `"viscous"`).
+        limit: &'static str,
+        /// The requested step.
+        dt: f64,
+        /// The largest stable step.
+        max_dt: f64,
+    },
+    /// The simulation (or its backward pass) produced NaN or Inf.
+    #[error("non-finite `{quantity}` of particle {particle} at substep {substep}")]
+    NonFinite {
+        /// Substep index (0-based, counted from the start of the run).
+        substep: usize,
+        /// `"x"`, `"v"`, `"C"`, `"F"` (forward) or `"dL/dx"`, ... (backward).
+        quantity: &'static str,
+        /// First offending particle.
+        particle: usize,
+    },
+    /// Gradient buffers do not match the tape.
+    #[error("gradient input mismatch: {0}")]
+    GradientMismatch(&'static str),
+}

@@ -1,0 +1,54 @@
+//! Fixed-corotated elasticity (Stomakhin et al. 2012, PhysGaussian / PhysDreamer):
+//! `τ = 2μ (F − R) Fᵀ + λ J (J − 1) I`, `R` the rotation of the polar decomposition; no plasticity.
+
+use glam::DMat3;
+
+use super::{Constitutive, ModelGrad};
+use crate::math::{cofactor, ddot, trace};
+use crate::state::FamilyGrad;
+use crate::svd::{rotation_adjoint, svd3};
+
+/// Fixed-corotated elastic solid.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct FixedCorotated;
+
+impl Constitutive for FixedCorotated {
+    const NAME: &'static str = "fixed_corotated";
+
+    fn update(&self, f: &DMat3, _c: &DMat3, mu: f64, lam: f64, _dt: f64) -> (DMat3, DMat3) {
+        let d = svd3(f);
+        let r = d.u * d.v.transpose();
+        let j = f.determinant();
+        let tau = (*f - r) * f.transpose() * (2.0 * mu) + DMat3::IDENTITY * (lam * j * (j - 1.0));
+        (*f, tau)
+    }
+
+    fn update_adjoint(
+        &self,
+        f: &DMat3,
+        _c: &DMat3,
+        mu: f64,
+        lam: f64,
+        _dt: f64,
+        g_f: &DMat3,
+        g_tau: &DMat3,
+    ) -> ModelGrad {
+        let d = svd3(f);
+        let r = d.u * d.v.transpose();
+        let j = f.determinant();
+        let tr_g = trace(g_tau);
+        let gt = g_tau.transpose();
+        // τ = 2μ(F Fᵀ − R Fᵀ) + λ(J² − J) I.
+        let mut g = *g_f + ((*g_tau + gt) * *f - gt * r) * (2.0 * mu);
+        g += cofactor(f) * (lam * (2.0 * j - 1.0) * tr_g);
+        let g_r = *g_tau * *f * (-2.0 * mu);
+        g += rotation_adjoint(&d, &g_r);
+        ModelGrad {
+            f_tmp: g,
+            c: DMat3::ZERO,
+            mu: 2.0 * ddot(g_tau, &((*f - r) * f.transpose())),
+            lam: tr_g * j * (j - 1.0),
+            family: FamilyGrad::default(),
+        }
+    }
+}

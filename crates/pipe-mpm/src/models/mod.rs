@@ -1,0 +1,121 @@
+//! Constitutive models: one file per PAC-NeRF family, all behind [`Constitutive`].
+//!
+//! Each substep a model turns the predicted deformation `F_tmp = (I + dt C) F` into the new
+//! (possibly plastically projected) `F` and the Kirchhoff stress `τ` (Pa) that P2G uses.
+//! The simulator is generic over the model, so there is no per-particle branch on the family.
+
+use glam::DMat3;
+
+use crate::error::MpmError;
+use crate::state::FamilyGrad;
+
+mod drucker_prager;
+mod fixed_corotated;
+mod hencky;
+mod neo_hookean;
+mod newtonian;
+mod von_mises;
+
+pub use drucker_prager::DruckerPrager;
+pub use fixed_corotated::FixedCorotated;
+pub use neo_hookean::NeoHookean;
+pub use newtonian::Newtonian;
+pub use von_mises::VonMises;
+
+/// Smallest singular value (or fluid `J`) kept by the plastic / fluid models (PAC-NeRF: 0.05).
+pub const SIGMA_MIN: f64 = 0.05;
+
+/// Gradients returned by [`Constitutive::update_adjoint`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ModelGrad {
+    /// `∂L/∂F_tmp`.
+    pub f_tmp: DMat3,
+    /// `∂L/∂C` (models whose stress reads `C` directly: Newtonian).
+    pub c: DMat3,
+    /// `∂L/∂μ_p`.
+    pub mu: f64,
+    /// `∂L/∂λ_p`.
+    pub lam: f64,
+    /// Family scalars.
+    pub family: FamilyGrad,
+}
+
+/// A constitutive law: strain prediction, return mapping and Kirchhoff stress, with adjoints.
+pub trait Constitutive: Send + Sync + std::fmt::Debug {
+    /// Short name (`"neo_hookean"`, ...).
+    const NAME: &'static str;
+
+    /// Predicted deformation `F_tmp = (I + dt C) F` (dt in s, C in 1/s).
+    #[inline]
+    fn predict(&self, c: &DMat3, f: &DMat3, dt: f64) -> DMat3 {
+        (DMat3::IDENTITY + *c * dt) * *f
+    }
+
+    /// Adjoint of [`Self::predict`]: returns `(∂L/∂C, ∂L/∂F)` from `∂L/∂F_tmp`.
+    #[inline]
+    fn predict_adjoint(&self, c: &DMat3, f: &DMat3, dt: f64, g: &DMat3) -> (DMat3, DMat3) {
+        (
+            *g * f.transpose() * dt,
+            (DMat3::IDENTITY + *c * dt).transpose() * *g,
+        )
+    }
+
+    /// Return mapping and stress: `(F_new, τ)` from `F_tmp`, the previous `C`, μ, λ (Pa), dt (s).
+    fn update(&self, f_tmp: &DMat3, c: &DMat3, mu: f64, lam: f64, dt: f64) -> (DMat3, DMat3);
+
+    /// Adjoint of [`Self::update`] given `∂L/∂F_new` and `∂L/∂τ`.
+    #[allow(clippy::too_many_arguments)]
+    fn update_adjoint(
+        &self,
+        f_tmp: &DMat3,
+        c: &DMat3,
+        mu: f64,
+        lam: f64,
+        dt: f64,
+        g_f: &DMat3,
+        g_tau: &DMat3,
+    ) -> ModelGrad;
+
+    /// Modulus (Pa) of the fastest wave for the CFL limit: `λ + 2μ` (P-wave) by default.
+    fn wave_modulus(&self, mu: f64, lam: f64) -> f64 {
+        lam + 2.0 * mu
+    }
+
+    /// Dynamic viscosity (Pa·s) limiting the explicit step (0 for none).
+    fn viscosity(&self, _mu: f64) -> f64 {
+        0.0
+    }
+
+    /// Checks the family parameters.
+    fn validate(&self) -> Result<(), MpmError> {
+        Ok(())
+    }
+}
+
+pub(crate) fn check_param(
+    field: &'static str,
+    value: f64,
+    min: f64,
+    inclusive: bool,
+) -> Result<(), MpmError> {
+    if !value.is_finite() {
+        return Err(MpmError::NonFiniteInput {
+            field,
+            index: 0,
+            value,
+        });
+    }
+    let ok = if inclusive { value >= min } else { value > min };
+    if !ok {
+        return Err(MpmError::InvalidParameter {
+            field,
+            value,
+            reason: if inclusive {
+                "must be >= 0"
+            } else {
+                "must be > 0"
+            },
+        });
+    }
+    Ok(())
+}

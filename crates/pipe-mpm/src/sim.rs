@@ -1,0 +1,277 @@
+//! The simulator: one MLS-MPM substep exactly as PAC-NeRF (fixture README §3 steps 1–7).
+//!
+//! 1. `F_tmp = (I + dt C) F`; 2–4. return mapping and Kirchhoff stress τ (the model);
+//! 5. P2G; 6. grid update and boundaries; 7. G2P, `x ← x + dt v`, held in the domain.
+
+use glam::{DMat3, DVec3};
+use rayon::prelude::*;
+
+use crate::boundary::Boundaries;
+use crate::error::MpmError;
+use crate::forces::{ParticleForce, extra_momentum};
+use crate::g2p::g2p;
+use crate::grid::{Aabb, GridSpec};
+use crate::grid_update::grid_update;
+use crate::models::Constitutive;
+use crate::p2g::{Node, P2gIn, p2g};
+use crate::scatter::Bins;
+use crate::state::{Material, State};
+
+/// Scene-level settings (SI units).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SimConfig {
+    /// Cell size (m).
+    pub dx: f64,
+    /// Substep (s).
+    pub dt: f64,
+    /// Gravity (m/s²), e.g. `(0, −9.8, 0)`.
+    pub gravity: DVec3,
+    /// Box the particles are held in (m); the grid adds `margin` cells around it.
+    pub domain: Aabb,
+    /// Extra grid cells beyond the domain on each side (at least 2).
+    pub margin: usize,
+    /// Boundary conditions.
+    pub boundaries: Boundaries,
+    /// External forces and impulses.
+    pub forces: Vec<ParticleForce>,
+}
+
+impl SimConfig {
+    /// Gravity `(0, −9.8, 0)`, sticky ground `y = 0`, separating domain walls, margin 3.
+    pub fn new(domain: Aabb, dx: f64, dt: f64) -> Self {
+        Self {
+            dx,
+            dt,
+            gravity: DVec3::new(0.0, -9.8, 0.0),
+            domain,
+            margin: 3,
+            boundaries: Boundaries {
+                colliders: vec![crate::boundary::Collider::ground(
+                    0.0,
+                    crate::boundary::BoundaryKind::Sticky,
+                )],
+                walls: Some(crate::boundary::BoundaryKind::Separate),
+            },
+            forces: Vec::new(),
+        }
+    }
+}
+
+/// Outcome of a forward run.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct RunReport {
+    /// Substeps taken.
+    pub substeps: usize,
+    /// Particle-substeps in which a particle was held at the domain edge.
+    pub held: usize,
+    /// Most particles held in a single substep.
+    pub max_held: usize,
+}
+
+/// Intermediates of one substep (kept for the adjoint).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Work {
+    pub bins: Bins,
+    pub f_tmp: Vec<DMat3>,
+    pub tau: Vec<DMat3>,
+    pub nodes: Vec<Node>,
+    pub vgrid: Vec<DVec3>,
+    pub extra: Option<Vec<DVec3>>,
+}
+
+/// A differentiable MLS-MPM simulator for one constitutive model `M`.
+#[derive(Debug, Clone)]
+pub struct Simulator<M: Constitutive> {
+    pub(crate) model: M,
+    pub(crate) config: SimConfig,
+    pub(crate) grid: GridSpec,
+}
+
+impl<M: Constitutive> Simulator<M> {
+    /// Validates the settings and builds the grid.
+    pub fn new(model: M, config: SimConfig) -> Result<Self, MpmError> {
+        model.validate()?;
+        if !(config.dt.is_finite() && config.dt > 0.0) {
+            return Err(MpmError::InvalidParameter {
+                field: "dt",
+                value: config.dt,
+                reason: "must be finite and > 0",
+            });
+        }
+        if !config.gravity.is_finite() {
+            return Err(MpmError::NonFiniteInput {
+                field: "gravity",
+                index: 0,
+                value: config.gravity.max_element(),
+            });
+        }
+        config.boundaries.validate()?;
+        let grid = GridSpec::new(config.domain, config.dx, config.margin)?;
+        Ok(Self {
+            model,
+            config,
+            grid,
+        })
+    }
+
+    /// The constitutive model and its family parameters.
+    pub fn model(&self) -> &M {
+        &self.model
+    }
+
+    /// Scene settings (change them through the setters, which keep the grid consistent).
+    pub fn config(&self) -> &SimConfig {
+        &self.config
+    }
+
+    /// The grid built from the domain.
+    pub fn grid(&self) -> &GridSpec {
+        &self.grid
+    }
+
+    /// Replaces the model (e.g. new family parameters during optimisation).
+    pub fn set_model(&mut self, model: M) -> Result<(), MpmError> {
+        model.validate()?;
+        self.model = model;
+        Ok(())
+    }
+
+    /// Replaces the external forces and impulses.
+    pub fn set_forces(&mut self, forces: Vec<ParticleForce>) {
+        self.config.forces = forces;
+    }
+
+    /// Replaces the boundary conditions.
+    pub fn set_boundaries(&mut self, boundaries: Boundaries) -> Result<(), MpmError> {
+        boundaries.validate()?;
+        self.config.boundaries = boundaries;
+        Ok(())
+    }
+
+    /// Changes the substep `dt` (s), e.g. after [`crate::stable_step`] as E changes.
+    pub fn set_dt(&mut self, dt: f64) -> Result<(), MpmError> {
+        if !(dt.is_finite() && dt > 0.0) {
+            return Err(MpmError::InvalidParameter {
+                field: "dt",
+                value: dt,
+                reason: "must be finite and > 0",
+            });
+        }
+        self.config.dt = dt;
+        Ok(())
+    }
+
+    /// Validates a state and material for this simulator (lengths, finiteness, forces' indices).
+    pub fn validate(&self, state: &State, mat: &Material) -> Result<(), MpmError> {
+        state.validate()?;
+        mat.validate(state.len())?;
+        self.config
+            .forces
+            .iter()
+            .try_for_each(|f| f.validate(state.len()))
+    }
+
+    /// Holds every particle inside the domain; returns how many moved.
+    pub fn hold_all(&self, state: &mut State) -> usize {
+        state
+            .x
+            .iter_mut()
+            .map(|x| usize::from(self.grid.hold(x)))
+            .sum()
+    }
+
+    /// One substep from `s` (positions inside the domain) at time `t` (s) into `out`.
+    /// Returns the number of particles held at the domain edge.
+    pub(crate) fn forward(
+        &self,
+        s: &State,
+        mat: &Material,
+        t: f64,
+        out: &mut State,
+        w: &mut Work,
+    ) -> usize {
+        let dt = self.config.dt;
+        let n = s.len();
+        w.bins = Bins::new(&self.grid, &s.x);
+        w.f_tmp.resize(n, DMat3::ZERO);
+        w.tau.resize(n, DMat3::ZERO);
+        out.f.resize(n, DMat3::ZERO);
+        out.x.resize(n, DVec3::ZERO);
+        out.v.resize(n, DVec3::ZERO);
+        out.c.resize(n, DMat3::ZERO);
+        let model = &self.model;
+        w.f_tmp
+            .par_iter_mut()
+            .zip(w.tau.par_iter_mut())
+            .zip(out.f.par_iter_mut())
+            .enumerate()
+            .for_each(|(p, ((ft, tau), fo))| {
+                *ft = model.predict(&s.c[p], &s.f[p], dt);
+                let (f_new, t_new) = model.update(ft, &s.c[p], mat.mu[p], mat.lam[p], dt);
+                *fo = f_new;
+                *tau = t_new;
+            });
+        w.extra = extra_momentum(&self.config.forces, n, t, dt);
+        let inp = P2gIn {
+            x: &s.x,
+            v: &s.v,
+            c: &s.c,
+            tau: &w.tau,
+            mass: &mat.mass,
+            volume: &mat.volume,
+            extra: w.extra.as_deref(),
+            dt,
+        };
+        p2g(&self.grid, &w.bins, inp, &mut w.nodes);
+        grid_update(
+            &self.grid,
+            &w.nodes,
+            dt,
+            self.config.gravity,
+            &self.config.boundaries,
+            &mut w.vgrid,
+        );
+        g2p(
+            &self.grid, &w.vgrid, &s.x, dt, &mut out.x, &mut out.v, &mut out.c,
+        )
+    }
+
+    /// Advances `state` by `n_substeps` substeps from time `t0` (s), checking for NaN/Inf after
+    /// every substep. Particles outside the domain are first held at its edge (counted).
+    pub fn run(
+        &self,
+        state: &mut State,
+        mat: &Material,
+        t0: f64,
+        n_substeps: usize,
+    ) -> Result<RunReport, MpmError> {
+        self.validate(state, mat)?;
+        let mut rep = RunReport::default();
+        let h = self.hold_all(state);
+        rep.held += h;
+        rep.max_held = h;
+        let mut w = Work::default();
+        let mut next = state.clone();
+        for k in 0..n_substeps {
+            let held = self.forward(
+                state,
+                mat,
+                t0 + k as f64 * self.config.dt,
+                &mut next,
+                &mut w,
+            );
+            std::mem::swap(state, &mut next);
+            if let Some((quantity, particle)) = state.first_non_finite() {
+                return Err(MpmError::NonFinite {
+                    substep: k,
+                    quantity,
+                    particle,
+                });
+            }
+            rep.substeps += 1;
+            rep.held += held;
+            rep.max_held = rep.max_held.max(held);
+        }
+        Ok(rep)
+    }
+}
