@@ -69,8 +69,60 @@ enum Command {
         #[arg(long)]
         all: bool,
     },
+    /// Export a stage's Gaussians as a 3DGS PLY, or its tables as Parquet.
+    Export {
+        #[command(flatten)]
+        pipeline: PipelineArgs,
+        /// The stage whose outputs to export (must be cached).
+        #[arg(long, value_name = "STAGE")]
+        stage: String,
+        /// `ply`: the stage's gaussians.arrow as a standard 3DGS PLY; `parquet`: every table.
+        #[arg(long, value_enum)]
+        format: ExportFormat,
+        /// Output file (ply) or folder (parquet); default: `exports/<pipeline>-<stage>[.ply]`.
+        #[arg(long, value_name = "PATH")]
+        out: Option<PathBuf>,
+    },
+    /// Render a 3DGS PLY (ours or another tool's) from a camera of a PAC-NeRF JSON.
+    Render {
+        /// The Gaussians (standard 3DGS PLY).
+        ply: PathBuf,
+        /// Camera file in the PAC-NeRF layout (`all_data.json`).
+        #[arg(long)]
+        cameras: PathBuf,
+        /// Camera index.
+        #[arg(long)]
+        view: u16,
+        /// Frame whose entry gives the camera.
+        #[arg(long, default_value_t = 0)]
+        frame: i32,
+        /// Output PNG.
+        #[arg(long)]
+        out: PathBuf,
+        /// Also write the expected depth (metres) as an OpenEXR `Z` channel.
+        #[arg(long)]
+        depth: Option<PathBuf>,
+        /// Output width in pixels (intrinsics scaled); default: the camera's image size.
+        #[arg(long, requires = "height")]
+        width: Option<u32>,
+        /// Output height in pixels.
+        #[arg(long, requires = "width")]
+        height: Option<u32>,
+        /// Background RGB in [0, 1], e.g. `1,1,1`.
+        #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = [1.0f32, 1.0, 1.0])]
+        background: Vec<f32>,
+    },
     /// Print the JSON Schema of pipeline files (for editors and validators).
     Schema,
+}
+
+/// Export formats.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum ExportFormat {
+    /// Standard 3D Gaussian splatting PLY (opens in common splat viewers).
+    Ply,
+    /// Parquet, one file per table.
+    Parquet,
 }
 
 fn parse_preset(s: &str) -> Result<Preset, String> {
@@ -213,6 +265,102 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
             for r in removed {
                 println!("  {r}");
             }
+            Ok(())
+        }
+        Command::Export {
+            pipeline,
+            stage,
+            format,
+            out,
+        } => {
+            let p = load(pipeline, registry)?;
+            let entry = ws.cached_entry(&p, registry, stage)?;
+            let fail = RunError::Output;
+            match format {
+                ExportFormat::Ply => {
+                    let src = entry.join("gaussians.arrow");
+                    if !src.exists() {
+                        return Err(fail(format!(
+                            "stage `{stage}` has no Gaussians to export ({} holds no gaussians.arrow)",
+                            entry.display()
+                        )));
+                    }
+                    let g: crate::scene::gaussians::Gaussians =
+                        crate::scene::table::read(&src).map_err(|e| fail(e.to_string()))?;
+                    let dst = out.clone().unwrap_or_else(|| {
+                        PathBuf::from(format!("exports/{}-{stage}.ply", p.name))
+                    });
+                    if let Some(dir) = dst.parent() {
+                        std::fs::create_dir_all(dir)
+                            .map_err(|e| fail(format!("{}: {e}", dir.display())))?;
+                    }
+                    crate::io::ply::write_gaussians(&dst, &g).map_err(|e| fail(e.to_string()))?;
+                    println!(
+                        "wrote {} Gaussians (SH degree {}) to {}",
+                        g.len(),
+                        g.sh_degree,
+                        dst.display()
+                    );
+                }
+                ExportFormat::Parquet => {
+                    let dir = out
+                        .clone()
+                        .unwrap_or_else(|| PathBuf::from(format!("exports/{}-{stage}", p.name)));
+                    let tables: Vec<String> = crate::pipeline::cache::list_files(&entry)
+                        .map_err(|e| fail(format!("{}: {e}", entry.display())))?
+                        .into_iter()
+                        .filter(|f| f.ends_with(".arrow"))
+                        .collect();
+                    if tables.is_empty() {
+                        return Err(fail(format!("stage `{stage}` wrote no tables")));
+                    }
+                    for t in tables {
+                        let dst = dir.join(t.replace(".arrow", ".parquet"));
+                        crate::io::parquet::arrow_to_parquet(&entry.join(&t), &dst)
+                            .map_err(|e| fail(e.to_string()))?;
+                        println!("wrote {}", dst.display());
+                    }
+                }
+            }
+            Ok(())
+        }
+        Command::Render {
+            ply,
+            cameras,
+            view,
+            frame,
+            out,
+            depth,
+            width,
+            height,
+            background,
+        } => {
+            let req = crate::preview::PreviewRequest {
+                ply: ply.clone(),
+                cameras: cameras.clone(),
+                view: *view,
+                frame: *frame,
+                size: width.zip(*height),
+                background: [background[0], background[1], background[2]],
+            };
+            let p = crate::preview::render(&req).map_err(|e| RunError::Output(e.to_string()))?;
+            crate::io::image::write_rgb8(out, &p.image)
+                .map_err(|e| RunError::Output(e.to_string()))?;
+            if let Some(d) = depth {
+                crate::io::exr::write_depth(d, p.image.width, p.image.height, &p.depth)
+                    .map_err(|e| RunError::Output(e.to_string()))?;
+            }
+            println!(
+                "rendered {} Gaussians from camera {view} at {}×{} to {}{}",
+                p.gaussians,
+                p.image.width,
+                p.image.height,
+                out.display(),
+                depth
+                    .as_ref()
+                    .map(|d| format!(" (depth: {})", d.display()))
+                    .unwrap_or_default()
+            );
             Ok(())
         }
         Command::Schema => {

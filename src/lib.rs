@@ -8,5 +8,6 @@
 pub mod cli;
 pub mod io;
 pub mod pipeline;
+pub mod preview;
 pub mod scene;
 pub mod stages;

@@ -93,9 +93,33 @@ struct RawEntry {
     intrinsic: Vec<Vec<f64>>,
 }
 
-/// Read and check `root/all_data.json`.
+/// Read and check `root/all_data.json`: every entry valid, one plate per camera.
 pub fn read_scene(root: &Path) -> Result<PacnerfScene, PacnerfError> {
-    let path = root.join("all_data.json");
+    read_json(&root.join("all_data.json"))
+}
+
+/// Read and check a PAC-NeRF camera JSON at `path` (image paths resolve against its folder).
+pub fn read_json(path: &Path) -> Result<PacnerfScene, PacnerfError> {
+    let mut scene = read_cameras(path)?;
+    let views: std::collections::BTreeSet<u16> = scene.images.iter().map(|i| i.view).collect();
+    for v in &views {
+        if !scene.plates.contains_key(v) {
+            return Err(PacnerfError::Layout {
+                path: path.to_path_buf(),
+                message: format!(
+                    "camera {v} has no background plate (./data/r_{v}_-1.png is not listed)"
+                ),
+            });
+        }
+    }
+    scene.images.sort_by_key(|i| (i.view, i.frame));
+    Ok(scene)
+}
+
+/// Read the entries of a PAC-NeRF camera JSON without requiring plates (e.g. to render).
+pub fn read_cameras(path: &Path) -> Result<PacnerfScene, PacnerfError> {
+    let root = path.parent().unwrap_or(Path::new("."));
+    let path = path.to_path_buf();
     let text = std::fs::read_to_string(&path).map_err(|e| PacnerfError::Read {
         path: path.clone(),
         message: e.to_string(),

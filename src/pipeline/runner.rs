@@ -87,6 +87,9 @@ pub enum RunError {
     /// `--from`, `--until` or `--force` name a stage the pipeline does not have.
     #[error("{0}")]
     Selection(String),
+    /// A command other than `run` (export, render, …) could not produce its output.
+    #[error("{0}")]
+    Output(String),
 }
 
 /// What happened to one stage in a run.
@@ -469,6 +472,36 @@ impl Workspace {
             }
         }
         Ok(removed)
+    }
+}
+
+impl Workspace {
+    /// The committed entry of stage `name` for the pipeline's current parameters.
+    pub fn cached_entry(
+        &self,
+        pipeline: &Pipeline,
+        registry: &Registry,
+        name: &str,
+    ) -> Result<PathBuf, RunError> {
+        let (graph, planned) = self.plan(pipeline, registry)?;
+        let p = planned.iter().find(|p| p.name == name).ok_or_else(|| {
+            RunError::Selection(format!(
+                "the pipeline has no stage `{name}` (stages: {})",
+                graph.order.join(", ")
+            ))
+        })?;
+        match &p.state {
+            StageState::Cached(_) => Ok(self.store.entry_dir(name, &p.key)),
+            StageState::Stale(why) => Err(RunError::Selection(format!(
+                "stage `{name}` is not cached for the current parameters ({}); run `pipe run {} --until {name}` first",
+                why.join("; "),
+                pipeline.file.display()
+            ))),
+            StageState::NotRun => Err(RunError::Selection(format!(
+                "stage `{name}` has not run yet; run `pipe run {} --until {name}` first",
+                pipeline.file.display()
+            ))),
+        }
     }
 }
 

@@ -1,6 +1,9 @@
 //! Domain types shared by stages and their Arrow tables (ARCHITECTURE §5).
 
+pub mod camera;
 pub mod frames;
 pub mod gaussians;
 pub mod metrics;
+pub mod splat;
 pub mod table;
+pub mod visual_hull;

@@ -2,10 +2,11 @@
 //! They register here; the runner knows them only through [`Registry`].
 
 pub mod ingest;
+pub mod init;
 
 use crate::pipeline::stage::Registry;
 
 /// Every stage kind the `pipe` binary knows, in natural pipeline order.
 pub fn builtin() -> Registry {
-    Registry::new().with(ingest::Ingest)
+    Registry::new().with(ingest::Ingest).with(init::Init)
 }

@@ -1,6 +1,8 @@
 //! Integration tests of the `pipe` library and CLI (one test binary, one module per area).
 
+mod formats;
 mod ingest;
+mod init;
 mod runner;
 mod spec_errors;
 mod support;

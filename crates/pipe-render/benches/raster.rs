@@ -1,0 +1,115 @@
+//! Forward and forward+backward timings on the anchor workload (`/work/shared/anchors`
+//! README): camera at the origin looking down +z, hfov 50°, square image, means uniform in
+//! [-1.6,1.6]²×[3,5], log-uniform scales in [0.005, 0.03], random unit quaternions, opacity
+//! U(0.1, 0.9), RGB colours, black background; the loss weights of the backward are fixed
+//! pseudo-random numbers in [-1, 1]. Run with
+//! `CARGO_TARGET_DIR=/work/target-render cargo bench -p pipe-render --bench raster`;
+//! set `RASTER_PHASES=all` (or e.g. `=100000:800`) to also print the per-phase split of one run per configuration.
+
+#[path = "../tests/common/mod.rs"]
+mod common;
+
+use common::{Rng, Scene, anchor_scene, simple_camera};
+use divan::Bencher;
+use pipe_render::{Camera, RenderOptions, backward, render};
+
+const CONFIGS: [(usize, u32); 4] = [(10_000, 256), (10_000, 800), (100_000, 256), (100_000, 800)];
+
+struct Setup {
+    scene: Scene<f32>,
+    cam: Camera<f32>,
+    d_image: Vec<[f32; 3]>,
+}
+
+fn setup(n: usize, res: u32) -> Setup {
+    let cam = simple_camera::<f32>(res, res, 50.0);
+    let mut rng = Rng(42);
+    let d_image = (0..cam.n_pixels())
+        .map(|_| std::array::from_fn(|_| rng.range(-1.0, 1.0) as f32))
+        .collect();
+    Setup {
+        scene: anchor_scene(n, 2026, 0),
+        cam,
+        d_image,
+    }
+}
+
+#[divan::bench(args = CONFIGS, sample_count = 5, sample_size = 1)]
+fn forward(b: Bencher, (n, res): (usize, u32)) {
+    let s = setup(n, res);
+    let opts = RenderOptions::default();
+    b.bench_local(|| render(&s.scene.gaussians_rgb(), &s.cam, &opts).unwrap());
+}
+
+#[divan::bench(args = CONFIGS, sample_count = 5, sample_size = 1)]
+fn forward_backward(b: Bencher, (n, res): (usize, u32)) {
+    let s = setup(n, res);
+    let opts = RenderOptions::default();
+    b.bench_local(|| {
+        let g = s.scene.gaussians_rgb();
+        let out = render(&g, &s.cam, &opts).unwrap();
+        backward(&g, &s.cam, &opts, &out, &s.d_image, None).unwrap()
+    });
+}
+
+/// Process CPU time (user + system, all threads) in ms from `/proc/self/stat`, if readable.
+fn cpu_ms() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
+        return f64::NAN;
+    };
+    let after = stat.rsplit_once(')').map_or("", |(_, r)| r);
+    let f: Vec<f64> = after
+        .split_whitespace()
+        .filter_map(|x| x.parse().ok())
+        .collect();
+    // fields after the command: state(skipped, not numeric) ppid ... utime is field 14 overall
+    (f.get(10).copied().unwrap_or(f64::NAN) + f.get(11).copied().unwrap_or(f64::NAN)) * 10.0
+}
+
+fn main() {
+    if let Ok(which) = std::env::var("RASTER_PHASES") {
+        let opts = RenderOptions::default();
+        println!(
+            "phase split (ms), per phase min of RASTER_RUNS (5) runs: N res | project sort blend | bwd: blend reduce project | isects max/tile"
+        );
+        for (n, res) in CONFIGS {
+            if which != "all" && which != format!("{n}:{res}") {
+                continue;
+            }
+            let s = setup(n, res);
+            let g = s.scene.gaussians_rgb();
+            let mut runs: Vec<[f64; 6]> = Vec::new();
+            let mut isects = (0, 0);
+            let mut cpu = f64::INFINITY;
+            let runs_n: usize = std::env::var("RASTER_RUNS")
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(5);
+            for _ in 0..runs_n {
+                let c0 = cpu_ms();
+                let out = render(&g, &s.cam, &opts).unwrap();
+                let gr = backward(&g, &s.cam, &opts, &out, &s.d_image, None).unwrap();
+                let (f, bw) = (out.timings, gr.timings);
+                let ms = |d: std::time::Duration| d.as_secs_f64() * 1e3;
+                runs.push([
+                    ms(f.project),
+                    ms(f.sort),
+                    ms(f.blend),
+                    ms(bw.blend),
+                    ms(bw.reduce),
+                    ms(bw.project),
+                ]);
+                isects = (out.bins.n_intersections(), out.bins.max_per_tile());
+                drop((out, gr));
+                cpu = cpu.min(cpu_ms() - c0);
+            }
+            let r: [f64; 6] =
+                std::array::from_fn(|k| runs.iter().map(|x| x[k]).fold(f64::INFINITY, f64::min));
+            println!(
+                "{n:>6} {res:>4} | {:7.1} {:7.1} {:7.1} | {:7.1} {:7.1} {:7.1} | {} {} | {cpu:.0}",
+                r[0], r[1], r[2], r[3], r[4], r[5], isects.0, isects.1
+            );
+        }
+    }
+    divan::main();
+}

@@ -1,0 +1,39 @@
+//! OpenEXR output: depth maps as a single 32-bit float `Z` channel (metres).
+
+use std::path::{Path, PathBuf};
+
+/// Writing the EXR failed.
+#[derive(Debug, thiserror::Error)]
+#[error("{path}: cannot write EXR: {message}")]
+pub struct ExrError {
+    /// The file.
+    pub path: PathBuf,
+    /// Why.
+    pub message: String,
+}
+
+/// Write a `width × height` row-major depth map (metres) as channel `Z`, atomically.
+pub fn write_depth(path: &Path, width: u32, height: u32, depth: &[f32]) -> Result<(), ExrError> {
+    use exr::prelude::*;
+    let err = |message: String| ExrError {
+        path: path.to_path_buf(),
+        message,
+    };
+    if depth.len() != (width as usize) * (height as usize) {
+        return Err(err(format!(
+            "{} values for a {width}×{height} image",
+            depth.len()
+        )));
+    }
+    let w = width as usize;
+    let pixels = SpecificChannels::build()
+        .with_channel("Z")
+        .with_pixel_fn(|p: Vec2<usize>| (depth[p.1 * w + p.0],));
+    let image = Image::from_channels((w, height as usize), pixels);
+    let tmp = path.with_extension(format!("exr.{}.tmp", std::process::id()));
+    image
+        .write()
+        .to_file(&tmp)
+        .map_err(|e| err(e.to_string()))?;
+    std::fs::rename(&tmp, path).map_err(|e| err(e.to_string()))
+}

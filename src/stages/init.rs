@@ -1,0 +1,282 @@
+//! Stage `init`: the initial Gaussians of the object.
+//!
+//! Default source: space carving of one frame's masks over all training views (the object's
+//! visual hull), sampled uniformly to the requested count, coloured by the per-channel median
+//! of the pixels it projects to. Scales start isotropic at half the mean point spacing
+//! ((V/N)^(1/3) / 2), rotations at identity, opacities at 0.1 (3DGS's initial value).
+
+use std::path::PathBuf;
+
+use glam::DVec3;
+use rand::{Rng, SeedableRng};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+
+use crate::io::image;
+use crate::pipeline::spec::Preset;
+use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
+use crate::scene::camera::Camera;
+use crate::scene::frames::{Frames, Role};
+use crate::scene::gaussians::{Gaussians, sh_coeffs};
+use crate::scene::table::{self, Table};
+use crate::scene::visual_hull::{self, MaskedView};
+
+/// Zeroth SH basis constant Y₀₀ = 1 / (2√π).
+pub const SH_C0: f32 = 0.282_094_8;
+
+/// Where the initial Gaussians come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum InitSource {
+    /// Space carving of the masks (needs no other input).
+    VisualHull,
+}
+
+/// Parameters of `init`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct InitParams {
+    /// Where the points come from.
+    #[serde(default = "default_source")]
+    pub source: InitSource,
+    /// Number of Gaussians to create.
+    #[serde(default = "default_points")]
+    pub points: u32,
+    /// Frame whose masks are carved.
+    #[serde(default)]
+    pub frame: u16,
+    /// Carving voxels along the longest edge of the box.
+    #[serde(default = "default_grid")]
+    pub grid: u32,
+    /// Views allowed to disagree (robustness to matte errors).
+    #[serde(default = "default_misses")]
+    pub max_misses: u32,
+    /// SH degree of the created Gaussians (higher coefficients start at zero).
+    #[serde(default = "default_sh")]
+    pub sh_degree: u8,
+    /// Initial opacity in (0, 1).
+    #[serde(default = "default_opacity")]
+    pub opacity: f32,
+    /// Random seed of the sampling.
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn default_source() -> InitSource {
+    InitSource::VisualHull
+}
+fn default_points() -> u32 {
+    20_000
+}
+fn default_grid() -> u32 {
+    128
+}
+fn default_misses() -> u32 {
+    1
+}
+fn default_sh() -> u8 {
+    3
+}
+fn default_opacity() -> f32 {
+    0.1
+}
+
+/// Problems specific to init.
+#[derive(Debug, thiserror::Error)]
+pub enum InitError {
+    /// Reading the upstream table failed.
+    #[error(transparent)]
+    Table(#[from] table::TableError),
+    /// Reading a mask or image failed.
+    #[error(transparent)]
+    Image(#[from] image::ImageError),
+    /// The data cannot produce Gaussians.
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// The `init` stage.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Init;
+
+impl TypedStage for Init {
+    type Params = InitParams;
+    const KIND: &'static str = "init";
+    const VERSION: u32 = 1;
+    const DESCRIPTION: &'static str = "Initial Gaussians of the object: visual hull of one frame's masks, sampled and coloured from the images";
+    const UPSTREAM: &'static [&'static str] = &["ingest"];
+
+    fn output_schemas(&self) -> Vec<(&'static str, u32)> {
+        vec![(Gaussians::NAME, Gaussians::VERSION)]
+    }
+
+    fn preset_params(&self, preset: Preset) -> Value {
+        match preset {
+            Preset::Draft => json!({"points": 3000, "grid": 96, "sh_degree": 1}),
+            Preset::Standard => json!({"points": 20000, "grid": 128}),
+            Preset::Paper => json!({"points": 50000, "grid": 192}),
+        }
+    }
+
+    fn validate(&self, p: &InitParams) -> Result<(), ParamError> {
+        let bad = |path: &str, message: String| {
+            Err(ParamError {
+                path: path.into(),
+                message,
+            })
+        };
+        if p.points == 0 {
+            return bad("points", "must be at least 1".into());
+        }
+        if p.sh_degree > 3 {
+            return bad("sh_degree", format!("must be 0..=3, found {}", p.sh_degree));
+        }
+        if !(p.opacity > 0.0 && p.opacity < 1.0) {
+            return bad("opacity", format!("must be in (0, 1), found {}", p.opacity));
+        }
+        if !(8..=1024).contains(&p.grid) {
+            return bad("grid", format!("must be in 8..=1024, found {}", p.grid));
+        }
+        Ok(())
+    }
+
+    fn run(&self, p: &InitParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
+        let ingest = ctx.upstream("ingest")?.dir.clone();
+        let frames: Frames =
+            table::read(&ingest.join("frames.arrow")).map_err(StageError::failed)?;
+        let rows: Vec<_> = frames
+            .rows
+            .iter()
+            .filter(|r| r.frame == p.frame && r.role == Role::Train)
+            .collect();
+        if rows.len() < 2 {
+            return Err(StageError::failed(InitError::Invalid(format!(
+                "stages.init.frame: frame {} has {} training view(s); carving needs at least 2",
+                p.frame,
+                rows.len()
+            ))));
+        }
+        let cameras: Vec<Camera> = rows.iter().map(|r| Camera::from_row(r)).collect();
+        let load = |rel: &str| -> Result<(PathBuf, Vec<u8>), StageError> {
+            let path = ingest.join(rel);
+            let (_, _, m) = image::read_gray8(&path).map_err(StageError::failed)?;
+            Ok((path, m))
+        };
+        let masks: Vec<Vec<u8>> = rows
+            .iter()
+            .map(|r| load(&r.mask).map(|x| x.1))
+            .collect::<Result<_, _>>()?;
+        let images: Vec<image::Rgb8> = rows
+            .iter()
+            .map(|r| image::read_rgb8(&ingest.join(&r.image)).map_err(StageError::failed))
+            .collect::<Result<_, _>>()?;
+        ctx.check_interrupted()?;
+        let views: Vec<MaskedView> = cameras
+            .iter()
+            .zip(&masks)
+            .map(|(c, m)| MaskedView { camera: c, mask: m })
+            .collect();
+        let hull = visual_hull::carve(&views, p.grid as usize, p.max_misses as usize);
+        if hull.centres.is_empty() {
+            return Err(StageError::failed(InitError::Invalid(format!(
+                "the visual hull of frame {} is empty: the masks of its {} training views do not agree on any point (check the ingest masks in {})",
+                p.frame,
+                rows.len(),
+                ingest.join("masks").display()
+            ))));
+        }
+        let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(p.seed);
+        let n = p.points as usize;
+        let positions: Vec<DVec3> = (0..n)
+            .map(|_| {
+                let c = hull.centres[rng.random_range(0..hull.centres.len())];
+                let j = DVec3::new(
+                    rng.random::<f64>(),
+                    rng.random::<f64>(),
+                    rng.random::<f64>(),
+                ) - 0.5;
+                c + j * hull.voxel
+            })
+            .collect();
+        let spacing = (hull.volume() / n as f64).cbrt();
+        let log_scale = (0.5 * spacing).ln() as f32;
+        let k = sh_coeffs(p.sh_degree);
+        let mut sh = vec![0.0f32; n * k * 3];
+        for (i, x) in positions.iter().enumerate() {
+            let rgb = median_colour(*x, &cameras, &masks, &images);
+            for c in 0..3 {
+                sh[i * k * 3 + c] = (rgb[c] - 0.5) / SH_C0;
+            }
+        }
+        let opacity_logit = (p.opacity / (1.0 - p.opacity)).ln();
+        let g = Gaussians {
+            sh_degree: p.sh_degree,
+            id: (0..n as u32).collect(),
+            position: positions.iter().map(|x| x.as_vec3().to_array()).collect(),
+            log_scale: vec![[log_scale; 3]; n],
+            rotation: vec![[1.0, 0.0, 0.0, 0.0]; n],
+            opacity_logit: vec![opacity_logit; n],
+            sh,
+            simulated: vec![true; n],
+        };
+        table::write(&ctx.out_dir.join("gaussians.arrow"), &g).map_err(StageError::failed)?;
+        let (lo, hi) = hull.bounds().expect("non-empty");
+        ctx.progress.log(&format!(
+            "visual hull of frame {}: {} voxels of {:.1} mm, {:.3} L, bounds [{:.3}, {:.3}, {:.3}]–[{:.3}, {:.3}, {:.3}] m; {n} Gaussians",
+            p.frame,
+            hull.centres.len(),
+            hull.voxel * 1e3,
+            hull.volume() * 1e3,
+            lo.x,
+            lo.y,
+            lo.z,
+            hi.x,
+            hi.y,
+            hi.z
+        ));
+        for (metric, value) in [
+            ("hull_volume_m3", hull.volume()),
+            ("hull_voxels", hull.centres.len() as f64),
+            ("gaussians", n as f64),
+        ] {
+            ctx.metric(MetricRow {
+                epoch: None,
+                view: None,
+                frame: Some(p.frame),
+                metric: metric.into(),
+                value,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// Per-channel median colour (in [0, 1]) of the pixels `x` projects to inside the masks.
+fn median_colour(
+    x: DVec3,
+    cameras: &[Camera],
+    masks: &[Vec<u8>],
+    images: &[image::Rgb8],
+) -> [f32; 3] {
+    let mut samples: [Vec<u8>; 3] = Default::default();
+    for ((cam, mask), img) in cameras.iter().zip(masks).zip(images) {
+        if let Some((u, v)) = cam.pixel(x) {
+            let i = (v * cam.width + u) as usize;
+            if mask[i] >= 128 {
+                for (c, s) in samples.iter_mut().enumerate() {
+                    s.push(img.data[i * 3 + c]);
+                }
+            }
+        }
+    }
+    samples.map(|mut s| {
+        if s.is_empty() {
+            0.5
+        } else {
+            let mid = s.len() / 2;
+            let (_, m, _) = s.select_nth_unstable(mid);
+            f32::from(*m) / 255.0
+        }
+    })
+}

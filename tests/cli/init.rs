@@ -1,0 +1,119 @@
+//! `init` (visual hull of frame 0's masks, sampled to N Gaussians) on the fixture scene, then
+//! `pipe export --format ply` and `pipe render` of the exported file: the hull must contain the
+//! ground-truth particles of frame 0 (gt/particles/0.ply, PAC-NeRF's simulator state) and not be
+//! much larger than the object, and the rendered silhouette must overlap the ground-truth mask.
+
+use std::path::{Path, PathBuf};
+
+use pipe::io::ply;
+use pipe::pipeline::progress::{Mode, Reporter};
+use pipe::pipeline::runner::{RunOptions, Workspace};
+use pipe::pipeline::spec::{self, Overrides};
+use pipe::scene::gaussians::Gaussians;
+use pipe::scene::metrics::Metrics;
+use pipe::scene::table;
+
+fn fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/torus-elastic-small")
+}
+
+#[test]
+fn visual_hull_init_contains_the_object_and_renders_its_silhouette() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("p.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "name: t\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: [10]\npreset: draft\nstages:\n  ingest: {{}}\n  init: {{points: 4000, seed: 7}}\n",
+            fixture().display()
+        ),
+    )
+    .unwrap();
+    let reg = pipe::stages::builtin();
+    let ws = Workspace::new(dir.path());
+    let p = spec::load(&file, &reg, &Overrides::default()).unwrap();
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    ws.run(&p, &reg, &RunOptions::default(), &Reporter::new(Mode::Quiet), &stop, "test").unwrap();
+    let entry = ws.cached_entry(&p, &reg, "init").unwrap();
+    let g: Gaussians = table::read(&entry.join("gaussians.arrow")).unwrap();
+    assert_eq!(g.len(), 4000);
+    assert_eq!(g.sh_degree, 1, "draft preset");
+    assert!(g.simulated.iter().all(|s| *s));
+
+    // Ground truth: PAC-NeRF's particles at frame 0 (14137 particles of 1e-6 m³).
+    let gt = ply::read_points(&fixture().join("gt/particles/0.ply")).unwrap();
+    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
+    for p in &gt.positions {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    // Every Gaussian lies within the object's box grown by 3 cm (the hull over-estimates).
+    for x in &g.position {
+        for a in 0..3 {
+            assert!(x[a] > lo[a] - 0.03 && x[a] < hi[a] + 0.03, "{x:?} outside {lo:?}..{hi:?}");
+        }
+    }
+    let m: Metrics = table::read(&entry.join("metrics.arrow")).unwrap();
+    let volume = m.rows.iter().find(|r| r.metric == "hull_volume_m3").unwrap().value;
+    let object = gt.positions.len() as f64 * 1e-6;
+    assert!(volume > object && volume < 1.6 * object, "hull {volume} m³ vs object {object} m³");
+    // The colours are the torus' (red/yellow stripes): red dominates blue on average.
+    let k = 3 * pipe::scene::gaussians::sh_coeffs(g.sh_degree);
+    let mean_dc: Vec<f32> = (0..3).map(|c| g.sh.chunks(k).map(|s| s[c]).sum::<f32>() / g.len() as f32).collect();
+    assert!(mean_dc[0] > mean_dc[2] + 0.3, "{mean_dc:?}");
+
+    // Export to PLY and render it from camera 3 with the CLI.
+    let out_ply = dir.path().join("init.ply");
+    let code = pipe::cli::run(
+        [
+            "pipe",
+            "--workdir",
+            dir.path().to_str().unwrap(),
+            "export",
+            file.to_str().unwrap(),
+            "--stage",
+            "init",
+            "--format",
+            "ply",
+            "--out",
+            out_ply.to_str().unwrap(),
+        ],
+        reg.clone(),
+    );
+    assert_eq!(code, 0);
+    let png = dir.path().join("v3.png");
+    let exr = dir.path().join("v3.exr");
+    let cams = fixture().join("all_data.json");
+    let code = pipe::cli::run(
+        [
+            "pipe",
+            "render",
+            out_ply.to_str().unwrap(),
+            "--cameras",
+            cams.to_str().unwrap(),
+            "--view",
+            "3",
+            "--out",
+            png.to_str().unwrap(),
+            "--depth",
+            exr.to_str().unwrap(),
+        ],
+        reg,
+    );
+    assert_eq!(code, 0);
+    assert!(exr.metadata().unwrap().len() > 0);
+    let img = image::open(&png).unwrap().into_rgb8();
+    assert_eq!(img.dimensions(), (100, 100));
+    let gt_mask = image::open(fixture().join("gt/masks/m_3_0.png")).unwrap().into_luma8();
+    let (mut inter, mut union) = (0u32, 0u32);
+    for (px, m) in img.pixels().zip(gt_mask.pixels()) {
+        let ours = px.0.iter().any(|c| *c < 200);
+        let theirs = m.0[0] >= 128;
+        inter += u32::from(ours && theirs);
+        union += u32::from(ours || theirs);
+    }
+    let iou = f64::from(inter) / f64::from(union);
+    assert!(iou > 0.6, "silhouette IoU of the initial Gaussians {iou:.3}");
+}
