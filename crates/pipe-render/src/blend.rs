@@ -320,7 +320,16 @@ pub(crate) fn backward_tile<T: Real>(
 ) {
     debug_assert_eq!(splats.len(), out.len());
     debug_assert!(splats.len() < i32::MAX as usize);
-    for (pos, (s, g)) in splats.iter().zip(out.iter_mut()).enumerate().rev() {
+    // splats behind every pixel's last contributor get no gradient
+    let max_last = st.last.iter().copied().max().unwrap_or(0).max(0) as usize;
+    let end = max_last.min(splats.len());
+    out[end..].fill(SplatGrad::default());
+    for (pos, (s, g)) in splats[..end]
+        .iter()
+        .zip(out[..end].iter_mut())
+        .enumerate()
+        .rev()
+    {
         let Some((ly0, ly1)) = s.local_rows(r.y0, r.y1) else {
             continue;
         };

@@ -83,7 +83,7 @@ pub struct Rendered<T> {
     pub alpha: Vec<T>,
     /// Expected depth along z_cam (m) of the blended Gaussians: `Σ_i w_i z_i / Σ_i w_i` with
     /// `w_i = α_i T_i` (normalised by the pixel's alpha; 0 where nothing was blended). Not
-    /// differentiated by [`crate::backward`].
+    /// differentiated by [`crate::backward()`].
     pub depth: Vec<T>,
     /// Number of Gaussians blended into each pixel.
     pub n_contrib: Vec<u32>,
@@ -110,7 +110,7 @@ pub(crate) fn validate<T: Real>(
     opts.validate()
 }
 
-/// Projects every Gaussian, in parallel chunks of [`PROJECT_CHUNK`].
+/// Projects every Gaussian (in parallel chunks of 4096), without blending.
 pub fn project_all<T: Real>(
     g: &Gaussians<'_, T>,
     cam: &Camera<T>,

@@ -2,7 +2,7 @@
 //!
 //! Pipeline: [`project`] each Gaussian (EWA, gsplat frustum clamp, `eps2d` blur, 3-sigma
 //! radius), bin into 16×16 [`tiles`] with a per-tile depth sort, blend front to back per
-//! pixel ([`forward`]); [`backward`] walks each pixel's list back to front and chains the
+//! pixel ([`forward`]); [`backward()`] walks each pixel's list back to front and chains the
 //! gradients through the projection, SH and activations.
 //!
 //! Conventions: OpenCV camera (x right, y down, z forward), `camera_from_world`

@@ -147,3 +147,26 @@ fn exp_f32(x: f32) -> f32 {
 
 impl_real!(f32, exp_f32);
 impl_real!(f64, f64::exp);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The f32 fast exponential stays within the documented relative error of the exact
+    /// value over the blend's range (power in [-5.6, 0]) and beyond, and never overflows.
+    #[test]
+    fn fast_exp_accuracy() {
+        let mut worst = 0.0f64;
+        for i in 0..=200_000 {
+            let x = -80.0 + 85.0 * i as f64 / 200_000.0; // [-80, 5]
+            let xf = x as f32;
+            let got = xf.exp_fast() as f64;
+            let want = (xf as f64).exp();
+            worst = worst.max((got - want).abs() / want);
+        }
+        assert!(worst < 2e-7, "max relative error {worst:e}");
+        assert!(f32::NEG_INFINITY.exp_fast() >= 0.0 && f32::NEG_INFINITY.exp_fast() < 1e-37);
+        assert!(100.0f32.exp_fast().is_finite());
+        assert_eq!(0.0f32.exp_fast(), 1.0);
+    }
+}

@@ -67,12 +67,19 @@ impl<T: Real> Splat<T> {
             let ey = (r2m * cov[2].to_f64()).sqrt() + 0.1;
             let my = mean2d[1].to_f64();
             // pixel centre j + 0.5 within [my - ey, my + ey]
-            out.rows = [ceil_i64(my - ey - 0.5), floor_i64(my + ey - 0.5) + 1];
+            out.rows = [
+                ceil_i64(my - ey - 0.5),
+                floor_i64(my + ey - 0.5).saturating_add(1),
+            ];
             // A dx² + 2B dx dy + C dy² <= r2m at fixed dy:
             // dx in -B dy/A ± sqrt((B² - AC) dy² + A r2m)/A
             out.slope = b / a;
             out.k1 = (b * b - a * c) / (a * a);
             out.k2 = r2m / a;
+            if !(out.slope.is_finite() && out.k1.is_finite() && out.k2.is_finite()) {
+                // degenerate (e.g. an underflowing conic of a huge Gaussian): whole rows
+                (out.slope, out.k1, out.k2) = (0.0, 0.0, f64::INFINITY);
+            }
         }
         out
     }
@@ -98,7 +105,7 @@ impl<T: Real> Splat<T> {
         // dx = mx - px, so px in mx + slope·dy ± half; pixel centre px = i + 0.5
         let centre = self.mx.to_f64() + self.slope * dy - 0.5;
         let l = ceil_i64(centre - half).max(x0 as i64);
-        let h = (floor_i64(centre + half) + 1).min(x1 as i64);
+        let h = (floor_i64(centre + half).saturating_add(1)).min(x1 as i64);
         (l < h).then(|| ((l as usize) - x0, (h as usize) - x0))
     }
 }
@@ -107,14 +114,22 @@ impl<T: Real> Splat<T> {
 #[inline(always)]
 fn floor_i64(v: f64) -> i64 {
     let i = v as i64;
-    if (i as f64) > v { i - 1 } else { i }
+    if (i as f64) > v {
+        i.saturating_sub(1)
+    } else {
+        i
+    }
 }
 
 /// `ceil(v)` as an integer without a libm call (saturating, NaN -> 0).
 #[inline(always)]
 fn ceil_i64(v: f64) -> i64 {
     let i = v as i64;
-    if (i as f64) < v { i + 1 } else { i }
+    if (i as f64) < v {
+        i.saturating_add(1)
+    } else {
+        i
+    }
 }
 
 /// Pixels per batch along a row: the alpha of a batch is computed branch-free so that it

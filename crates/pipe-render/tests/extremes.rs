@@ -77,12 +77,14 @@ fn degenerate_gaussians() {
         [500.0, 0.0, 3.0],  // far outside the image
         [0.0, -0.1, 1e6],   // very far away
         [0.3, 0.3, 0.0101], // just in front of the near plane
+        [0.0, 0.0, 3.0],    // scale 3e6 m: conic ~1e-16, still visible
     ];
     let n = means.len();
     let mut log_scales = vec![[(0.05f32).ln(); 3]; n];
     log_scales[0] = [-inf, -inf, -inf];
     log_scales[1] = [(1e3f32).ln(); 3];
     log_scales[2] = [80.0; 3];
+    log_scales[13] = [(3e6f32).ln(); 3];
     let mut quats = vec![[1.0, 0.0, 0.0, 0.0]; n];
     quats[5] = [0.0; 4];
     quats[6] = [f32::NAN, 0.0, 0.0, 1.0];
