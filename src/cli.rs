@@ -112,6 +112,20 @@ enum Command {
         #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = [1.0f32, 1.0, 1.0])]
         background: Vec<f32>,
     },
+    /// Simulate a point cloud or 3DGS PLY as a continuum (MLS-MPM) and write the frames.
+    Simulate {
+        /// Particles: any point-cloud PLY or 3DGS PLY (x y z used).
+        particles: PathBuf,
+        /// Material, initial velocity, boundaries and forces (YAML; see README).
+        #[arg(long)]
+        material: PathBuf,
+        /// Number of frames to write (frame 0 is the input state).
+        #[arg(long, default_value_t = 14)]
+        frames: u32,
+        /// Output folder: frame_NNNN.ply, particles.arrow, summary.json.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Print the JSON Schema of pipeline files (for editors and validators).
     Schema,
 }
@@ -361,6 +375,19 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
                     .map(|d| format!(" (depth: {})", d.display()))
                     .unwrap_or_default()
             );
+            Ok(())
+        }
+        Command::Simulate {
+            particles,
+            material,
+            frames,
+            out,
+        } => {
+            install_interrupt_handler();
+            let reporter = Reporter::auto(cli.quiet);
+            let summary = crate::simulate::run(particles, material, *frames, out, &reporter)
+                .map_err(|e| RunError::Output(e.to_string()))?;
+            println!("{}", summary.report(out));
             Ok(())
         }
         Command::Schema => {

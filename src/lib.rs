@@ -10,4 +10,5 @@ pub mod io;
 pub mod pipeline;
 pub mod preview;
 pub mod scene;
+pub mod simulate;
 pub mod stages;

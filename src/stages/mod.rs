@@ -3,10 +3,14 @@
 
 pub mod ingest;
 pub mod init;
+pub mod warmup;
 
 use crate::pipeline::stage::Registry;
 
 /// Every stage kind the `pipe` binary knows, in natural pipeline order.
 pub fn builtin() -> Registry {
-    Registry::new().with(ingest::Ingest).with(init::Init)
+    Registry::new()
+        .with(ingest::Ingest)
+        .with(init::Init)
+        .with(warmup::Warmup)
 }

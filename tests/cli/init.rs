@@ -33,7 +33,15 @@ fn visual_hull_init_contains_the_object_and_renders_its_silhouette() {
     let ws = Workspace::new(dir.path());
     let p = spec::load(&file, &reg, &Overrides::default()).unwrap();
     let stop = std::sync::atomic::AtomicBool::new(false);
-    ws.run(&p, &reg, &RunOptions::default(), &Reporter::new(Mode::Quiet), &stop, "test").unwrap();
+    ws.run(
+        &p,
+        &reg,
+        &RunOptions::default(),
+        &Reporter::new(Mode::Quiet),
+        &stop,
+        "test",
+    )
+    .unwrap();
     let entry = ws.cached_entry(&p, &reg, "init").unwrap();
     let g: Gaussians = table::read(&entry.join("gaussians.arrow")).unwrap();
     assert_eq!(g.len(), 4000);
@@ -52,16 +60,29 @@ fn visual_hull_init_contains_the_object_and_renders_its_silhouette() {
     // Every Gaussian lies within the object's box grown by 3 cm (the hull over-estimates).
     for x in &g.position {
         for a in 0..3 {
-            assert!(x[a] > lo[a] - 0.03 && x[a] < hi[a] + 0.03, "{x:?} outside {lo:?}..{hi:?}");
+            assert!(
+                x[a] > lo[a] - 0.03 && x[a] < hi[a] + 0.03,
+                "{x:?} outside {lo:?}..{hi:?}"
+            );
         }
     }
     let m: Metrics = table::read(&entry.join("metrics.arrow")).unwrap();
-    let volume = m.rows.iter().find(|r| r.metric == "hull_volume_m3").unwrap().value;
+    let volume = m
+        .rows
+        .iter()
+        .find(|r| r.metric == "hull_volume_m3")
+        .unwrap()
+        .value;
     let object = gt.positions.len() as f64 * 1e-6;
-    assert!(volume > object && volume < 1.6 * object, "hull {volume} m³ vs object {object} m³");
+    assert!(
+        volume > object && volume < 1.6 * object,
+        "hull {volume} m³ vs object {object} m³"
+    );
     // The colours are the torus' (red/yellow stripes): red dominates blue on average.
     let k = 3 * pipe::scene::gaussians::sh_coeffs(g.sh_degree);
-    let mean_dc: Vec<f32> = (0..3).map(|c| g.sh.chunks(k).map(|s| s[c]).sum::<f32>() / g.len() as f32).collect();
+    let mean_dc: Vec<f32> = (0..3)
+        .map(|c| g.sh.chunks(k).map(|s| s[c]).sum::<f32>() / g.len() as f32)
+        .collect();
     assert!(mean_dc[0] > mean_dc[2] + 0.3, "{mean_dc:?}");
 
     // Export to PLY and render it from camera 3 with the CLI.
@@ -106,7 +127,9 @@ fn visual_hull_init_contains_the_object_and_renders_its_silhouette() {
     assert!(exr.metadata().unwrap().len() > 0);
     let img = image::open(&png).unwrap().into_rgb8();
     assert_eq!(img.dimensions(), (100, 100));
-    let gt_mask = image::open(fixture().join("gt/masks/m_3_0.png")).unwrap().into_luma8();
+    let gt_mask = image::open(fixture().join("gt/masks/m_3_0.png"))
+        .unwrap()
+        .into_luma8();
     let (mut inter, mut union) = (0u32, 0u32);
     for (px, m) in img.pixels().zip(gt_mask.pixels()) {
         let ours = px.0.iter().any(|c| *c < 200);
@@ -115,5 +138,8 @@ fn visual_hull_init_contains_the_object_and_renders_its_silhouette() {
         union += u32::from(ours || theirs);
     }
     let iou = f64::from(inter) / f64::from(union);
-    assert!(iou > 0.6, "silhouette IoU of the initial Gaussians {iou:.3}");
+    assert!(
+        iou > 0.6,
+        "silhouette IoU of the initial Gaussians {iou:.3}"
+    );
 }

@@ -4,6 +4,8 @@ mod formats;
 mod ingest;
 mod init;
 mod runner;
+mod simulate;
 mod spec_errors;
 mod support;
 mod tables;
+mod warmup;

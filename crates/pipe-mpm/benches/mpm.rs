@@ -3,9 +3,19 @@
 //! stop outward motion; N particles uniform in a cube of side (N/8)^(1/3)·dx (8 per cell),
 //! centred in x/z, raised in y, at rest. Counter = particles, so divan's items/s is
 //! particle-substeps/s. Differences from the anchors: f64 instead of f32, and the particle
-//! positions come from our own generator (same distribution, not numpy's stream).
+//! positions come from our own generator (same distribution, not numpy's stream). The cube
+//! placement is the anchors' exactly: side = min((N/8)^(1/3)·dx, 1 − 10·dx), lower corner
+//! (0.5 − side/2, 0.5 − side/2 + 0.1·(1 − side), 0.5 − side/2); warm-up 10 substeps (Taichi's).
 //!
-//! `CARGO_TARGET_DIR=/work/target-mpm cargo bench -p pipe-mpm --bench mpm`
+//! `CARGO_TARGET_DIR=/work/target-bench cargo bench -p pipe-mpm --bench mpm`
+//!
+//! Extra modes (run before divan, printing one JSON line each, then exit if set):
+//! * `MPM_AD=1`: forward (checkpointed tape) and backward timed separately, 16 substeps,
+//!   N = 20k, G = 32, nh and fcr, threads from `MPM_AD_THREADS` (default 1), median of 3.
+//! * `MPM_ROLLOUT=run|tape|tape+bwd`: one differentiable rollout of `MPM_FRAMES` (14) frames of
+//!   `MPM_SUBSTEPS_PER_FRAME` (50) substeps, N = 20k, G = 32, nh, checkpoint per frame; for
+//!   peak-memory measurements with `/usr/bin/time -v` (`run` = plain forward, no tape).
+//! * `MPM_SWEEP_THREADS` (default 2): threads of the `sweep_fcr` particle-count sweep.
 
 use divan::Bencher;
 use divan::counter::ItemsCount;
@@ -16,12 +26,138 @@ use pipe_mpm::{
 };
 
 fn main() {
+    if std::env::var("MPM_AD").is_ok() {
+        ad_split();
+        return;
+    }
+    if let Ok(mode) = std::env::var("MPM_ROLLOUT") {
+        rollout(&mode);
+        return;
+    }
     divan::main();
+}
+
+fn env_usize(k: &str, d: usize) -> usize {
+    std::env::var(k)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(d)
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Forward (checkpointed tape, `every` substeps per checkpoint) and backward, timed apart.
+fn ad_case<M: Constitutive + Clone>(name: &str, model: M, steps: usize, every: usize, threads: usize) {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    let n = 20_000;
+    let (sim, s0, mat) = scene(model, n, 32);
+    let (mut plain, mut tf, mut tb) = (vec![], vec![], vec![]);
+    let mut check = 0.0;
+    for rep in 0..4 {
+        pool.install(|| {
+            let mut s = s0.clone();
+            let t = std::time::Instant::now();
+            sim.run(&mut s, &mat, 0.0, steps).unwrap();
+            let t_plain = t.elapsed().as_secs_f64();
+            let mut s = s0.clone();
+            let t = std::time::Instant::now();
+            let tape = sim.forward_tape(&mut s, &mat, 0.0, steps, every).unwrap();
+            let t_f = t.elapsed().as_secs_f64();
+            // loss = mean final y (as the Taichi anchor)
+            let mut seed = StateGrad::zeros(n);
+            seed.x.iter_mut().for_each(|g| g.y = 1.0 / n as f64);
+            let t = std::time::Instant::now();
+            let gr = sim
+                .backward(
+                    &tape,
+                    &mat,
+                    |k, _| (k == steps).then(|| seed.clone()),
+                    BackwardOptions::default(),
+                )
+                .unwrap();
+            let t_b = t.elapsed().as_secs_f64();
+            check = gr.state.v.iter().map(|g| g.y).sum::<f64>();
+            if rep > 0 {
+                plain.push(t_plain);
+                tf.push(t_f);
+                tb.push(t_b);
+            }
+        });
+    }
+    let (p, f, b) = (median(plain), median(tf), median(tb));
+    println!(
+        "{{\"case\":\"{name}\",\"N\":{n},\"G\":32,\"substeps\":{steps},\"every\":{every},\"threads\":{threads},\"fwd_plain_s\":{p:.4},\"fwd_tape_s\":{f:.4},\"bwd_s\":{b:.4},\"bwd_over_fwd_plain\":{:.3},\"bwd_over_fwd_tape\":{:.3},\"fwd_plus_bwd_over_fwd_plain\":{:.3},\"check_sum_dL_dv0y\":{check:.6e},\"check_expected\":{:.1e}}}",
+        b / p,
+        b / f,
+        (f + b) / p,
+        steps as f64 * 1e-4
+    );
+}
+
+fn ad_split() {
+    let threads = env_usize("MPM_AD_THREADS", 1);
+    let steps = env_usize("MPM_AD_STEPS", 16);
+    let every = env_usize("MPM_AD_EVERY", 4);
+    ad_case("nh", NeoHookean, steps, every, threads);
+    ad_case("fcr", FixedCorotated, steps, every, threads);
+}
+
+fn rss_kib() -> usize {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse().ok()))
+        })
+        .unwrap_or(0)
+}
+
+fn rollout(mode: &str) {
+    let frames = env_usize("MPM_FRAMES", 14);
+    let spf = env_usize("MPM_SUBSTEPS_PER_FRAME", 50);
+    let n = 20_000;
+    let (sim, mut s, mat) = scene(NeoHookean, n, 32);
+    let state_bytes = n * (3 + 3 + 9 + 9) * 8;
+    let hwm0 = rss_kib();
+    let t = std::time::Instant::now();
+    match mode {
+        "run" => {
+            sim.run(&mut s, &mat, 0.0, frames * spf).unwrap();
+        }
+        "tape" | "tape+bwd" => {
+            let tape = sim.forward_tape(&mut s, &mat, 0.0, frames * spf, spf).unwrap();
+            if mode == "tape+bwd" {
+                let mut seed = StateGrad::zeros(n);
+                seed.x.iter_mut().for_each(|g| g.y = 1.0 / n as f64);
+                sim.backward(
+                    &tape,
+                    &mat,
+                    |k, _| (k % spf == 0 && k > 0).then(|| seed.clone()),
+                    BackwardOptions::default(),
+                )
+                .unwrap();
+            }
+            drop(tape);
+        }
+        m => panic!("MPM_ROLLOUT={m}: expected run, tape or tape+bwd"),
+    }
+    println!(
+        "{{\"mode\":\"{mode}\",\"N\":{n},\"frames\":{frames},\"substeps_per_frame\":{spf},\"state_bytes\":{state_bytes},\"vmhwm_before_kib\":{hwm0},\"vmhwm_after_kib\":{},\"wall_s\":{:.2}}}",
+        rss_kib(),
+        t.elapsed().as_secs_f64()
+    );
 }
 
 fn scene<M: Constitutive>(model: M, n: usize, g: usize) -> (Simulator<M>, State, Material) {
     let dx = 1.0 / g as f64;
-    let side = (n as f64 / 8.0).cbrt() * dx;
+    let side = ((n as f64 / 8.0).cbrt() * dx).min(1.0 - 10.0 * dx);
     let mut seed = 0x2545F4914F6CDD1Du64;
     let mut r = move || {
         seed ^= seed << 13;
@@ -29,11 +165,15 @@ fn scene<M: Constitutive>(model: M, n: usize, g: usize) -> (Simulator<M>, State,
         seed ^= seed << 17;
         (seed >> 11) as f64 / (1u64 << 53) as f64
     };
-    let lo = DVec3::new(0.5 - side / 2.0, 0.6 - side / 2.0, 0.5 - side / 2.0);
+    let lo = DVec3::new(
+        0.5 - side / 2.0,
+        0.5 - side / 2.0 + 0.1 * (1.0 - side),
+        0.5 - side / 2.0,
+    );
     let x = (0..n)
         .map(|_| lo + DVec3::new(r(), r(), r()) * side)
         .collect();
-    let vol = dx * dx * dx / 8.0;
+    let vol = side * side * side / n as f64; // = dx³/8 unless the cube was clamped
     let mat = Material::from_e_nu(n, vol, 1.0, 1e3, 0.2).unwrap();
     let mut cfg = SimConfig::new(
         Aabb::new(DVec3::splat(3.0 * dx), DVec3::splat(1.0 - 3.0 * dx)),
@@ -53,7 +193,7 @@ fn forward<M: Constitutive + Clone>(b: Bencher, model: M, n: usize, g: usize, th
         .build()
         .unwrap();
     let (sim, mut s, mat) = scene(model, n, g);
-    pool.install(|| sim.run(&mut s, &mat, 0.0, 5).unwrap());
+    pool.install(|| sim.run(&mut s, &mat, 0.0, 10).unwrap());
     // 10 substeps per iteration so per-call buffer setup is amortised as in real runs.
     b.counter(ItemsCount::new(n * 10)).bench_local(|| {
         pool.install(|| sim.run(&mut s, &mat, 0.0, 10).unwrap());
@@ -73,6 +213,20 @@ fn nh_20k_g32(b: Bencher, threads: usize) {
 #[divan::bench(args = [1, 2], sample_count = 3, sample_size = 1)]
 fn fcr_100k_g64(b: Bencher, threads: usize) {
     forward(b, FixedCorotated, 100_000, 64, threads);
+}
+
+#[divan::bench(args = [1, 2], sample_count = 3, sample_size = 1)]
+fn nh_100k_g64(b: Bencher, threads: usize) {
+    forward(b, NeoHookean, 100_000, 64, threads);
+}
+
+/// Particle-count sweep, fcr, 8 particles per cell; G scaled with the cube so the cube spans
+/// the same ~42% of the domain as the 20k / G = 32 anchor case (G = round(2.4·(N/8)^(1/3))).
+/// Threads from `MPM_SWEEP_THREADS` (default 2). Items = particle-substeps.
+#[divan::bench(args = [10_000, 30_000, 100_000, 300_000, 1_000_000], sample_count = 3, sample_size = 1)]
+fn sweep_fcr(b: Bencher, n: usize) {
+    let g = (2.4 * (n as f64 / 8.0).cbrt()).round() as usize;
+    forward(b, FixedCorotated, n, g, env_usize("MPM_SWEEP_THREADS", 2));
 }
 
 /// Forward (with checkpoints) + backward over 8 substeps, fcr, N = 20k, G = 32; items = particle-substeps.

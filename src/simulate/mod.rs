@@ -1,0 +1,427 @@
+//! `pipe simulate PARTICLES.ply --material SIM.yaml --frames N --out DIR`: run the MPM
+//! simulator forward from a particle cloud and write every frame.
+//!
+//! 1. [`load_spec`] reads and validates `SIM.yaml` ([`spec`]: material family and its
+//!    parameters, initial velocity, gravity, frame time, boundaries, forces, substeps);
+//! 2. the particles are read from any point-cloud or 3DGS PLY (`x y z`);
+//! 3. [`setup::setup`] resolves the defaults: particle spacing (hash-grid density, see
+//!    [`neighbors::particle_spacing`]), `grid_dx = 2·spacing`, `particle_volume = spacing³`,
+//!    and a domain covering where the particles can go;
+//! 4. the family picks one monomorphised `pipe_mpm::Simulator`; every frame takes the
+//!    substeps the stability limit needs at its start (recomputed from the largest speed), or
+//!    the file's fixed `substeps`, which must respect the limit unless `allow_unstable: true`;
+//! 5. [`output`] writes `frame_NNNN.ply` per frame (frame 0 = input), `particles.arrow` and
+//!    `summary.json`, each atomically; the summary is written last.
+//!
+//! The particle count never changes: particles that reach the domain edge are held there by
+//! the walls and counted per frame (`held`).
+
+pub mod neighbors;
+pub mod output;
+pub mod setup;
+pub mod spec;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use glam::DVec3;
+use pipe_mpm::{
+    Boundaries, BoundaryKind, Constitutive, Material, ModelVisitor, MpmError, SimConfig, Simulator,
+    State, StepLimits, stable_step,
+};
+
+pub use output::{FrameStats, Summary, Trajectories};
+pub use spec::{SimSpec, load_spec};
+
+use crate::io::ply::{self, PlyError};
+use crate::pipeline::progress::Progress;
+use crate::pipeline::spec::SpecError;
+use crate::pipeline::yaml::Position;
+use crate::scene::table::{self, TableError};
+use setup::Setup;
+use spec::fmt_num;
+
+/// Why `pipe simulate` failed. Every message names the file, key or value at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum SimulateError {
+    /// The simulation file is unreadable or invalid (file, line:column, key, value, hint).
+    #[error(transparent)]
+    Spec(SpecError),
+    /// The particle PLY cannot be read, or an output PLY cannot be written.
+    #[error(transparent)]
+    Ply(#[from] PlyError),
+    /// The particle PLY holds no vertex.
+    #[error("{path}: no particles: the `vertex` element has 0 records")]
+    NoParticles {
+        /// The PLY.
+        path: PathBuf,
+    },
+    /// More particles than the output table can index.
+    #[error("{path}: {count} particles; at most {} are supported", u32::MAX)]
+    TooManyParticles {
+        /// The PLY.
+        path: PathBuf,
+        /// Its vertex count.
+        count: usize,
+    },
+    /// A bad `--frames` value.
+    #[error("--frames {frames}: {reason}")]
+    Frames {
+        /// The value given.
+        frames: u32,
+        /// What is wrong.
+        reason: &'static str,
+    },
+    /// The particle spacing cannot be measured (a default needs it).
+    #[error("{path}: {message}")]
+    Spacing {
+        /// The PLY.
+        path: PathBuf,
+        /// What is wrong and what to set instead.
+        message: String,
+    },
+    /// The file's fixed `substeps` breaks the stability limit (and `allow_unstable` is off).
+    #[error(
+        "{file}: `substeps` = {substeps}{at} is above the {limit} stability limit at frame {frame}: \
+         dt = frame_dt / substeps = {dt:.3e} s > {max_dt:.3e} s; at least {needed} substeps per \
+         frame are needed (leave `substeps` out to choose them automatically, raise it, or set \
+         `allow_unstable: true`)",
+        at = position.map(|p| format!(" at line {p}")).unwrap_or_default()
+    )]
+    UnstableSubsteps {
+        /// The simulation file.
+        file: PathBuf,
+        /// Where `substeps` is.
+        position: Option<Position>,
+        /// The fixed count.
+        substeps: u32,
+        /// Frame about to be simulated (1-based).
+        frame: u32,
+        /// `frame_dt / substeps` (s).
+        dt: f64,
+        /// The binding limit (`"elastic wave (CFL)"`, `"viscous"`).
+        limit: &'static str,
+        /// Its largest stable substep (s).
+        max_dt: f64,
+        /// Substeps per frame the limit needs.
+        needed: usize,
+    },
+    /// The simulator refused the settings or diverged.
+    #[error("{context}: {source}")]
+    Simulation {
+        /// Where (`setting up the simulator`, `frame 3 (120 substeps of 3.5e-4 s)`).
+        context: String,
+        /// The simulator's error.
+        source: MpmError,
+    },
+    /// A file-system failure on an output.
+    #[error("{path}: cannot {action}: {source}")]
+    Io {
+        /// The file or folder.
+        path: PathBuf,
+        /// What was attempted.
+        action: &'static str,
+        /// OS error.
+        source: std::io::Error,
+    },
+    /// `particles.arrow` cannot be written.
+    #[error(transparent)]
+    Table(#[from] TableError),
+}
+
+/// Simulates `frames` output frames (frame 0 = the input state) of the particles in
+/// `particles` with the settings of `sim_file`, writing them to `out` (created if needed).
+pub fn run(
+    particles: &Path,
+    sim_file: &Path,
+    frames: u32,
+    out: &Path,
+    progress: &dyn Progress,
+) -> Result<Summary, SimulateError> {
+    let started = Instant::now();
+    if frames == 0 {
+        return Err(SimulateError::Frames {
+            frames,
+            reason: "at least 1 frame (frame 0 is the input state)",
+        });
+    }
+    if frames > u32::from(u16::MAX) + 1 {
+        return Err(SimulateError::Frames {
+            frames,
+            reason: "at most 65536 frames (the `frame` column of particles.arrow is UInt16)",
+        });
+    }
+    let spec = load_spec(sim_file)?;
+    let cloud = ply::read_points(particles)?;
+    let n = cloud.positions.len();
+    if n == 0 {
+        return Err(SimulateError::NoParticles {
+            path: particles.to_path_buf(),
+        });
+    }
+    if n > u32::MAX as usize {
+        return Err(SimulateError::TooManyParticles {
+            path: particles.to_path_buf(),
+            count: n,
+        });
+    }
+    let x0: Vec<DVec3> = cloud
+        .positions
+        .iter()
+        .map(|p| DVec3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])))
+        .collect();
+    let setup = setup::setup(&spec, particles, &x0, frames)?;
+    let mat = spec
+        .material
+        .material(n, setup.particle_volume)
+        .map_err(|source| SimulateError::Simulation {
+            context: format!("material from {}", spec.file.display()),
+            source,
+        })?;
+    let mut state = State::at_rest(x0);
+    let v0 = DVec3::from_array(spec.initial_velocity);
+    state.v.iter_mut().for_each(|v| *v = v0);
+    for w in &setup.warnings {
+        progress.log(&format!("warning: {w}"));
+    }
+    let job = Job {
+        spec: &spec,
+        setup: &setup,
+        state,
+        mat,
+        frames,
+        out,
+        progress,
+    };
+    let done = spec.material.mpm_family().visit(job)?;
+
+    let out_count = done.state.len();
+    table::write(&out.join("particles.arrow"), &done.trajectories)?;
+    let mut warnings = setup.warnings.clone();
+    warnings.extend(done.warnings);
+    let substeps_total = done.stats.iter().map(|s| s.substeps).sum();
+    let held_total = done.stats.iter().map(|s| s.held).sum();
+    let mass = spec.material.density * setup.particle_volume;
+    let summary = Summary {
+        pipe_version: env!("CARGO_PKG_VERSION").to_string(),
+        particles_file: particles.display().to_string(),
+        sim_file: sim_file.display().to_string(),
+        material: spec.material.clone(),
+        frames,
+        frame_dt_s: spec.frame_dt,
+        simulated_time_s: f64::from(frames - 1) * spec.frame_dt,
+        particles_in: n,
+        particles_out: out_count,
+        spacing_m: setup.spacing.map(|s| s.spacing),
+        median_nn_distance_m: setup.spacing.map(|s| s.median_nn),
+        dx_m: setup.dx,
+        dx_source: setup.dx_source.clone(),
+        particle_volume_m3: setup.particle_volume,
+        particle_volume_source: setup.volume_source.clone(),
+        particle_mass_kg: mass,
+        total_mass_kg: mass * n as f64,
+        domain: spec::BoxSpec {
+            min: setup.domain.lo.to_array(),
+            max: setup.domain.hi.to_array(),
+        },
+        domain_source: setup.domain_source.clone(),
+        grid_nodes: setup::grid_nodes(&setup.domain, setup.dx),
+        boundaries: setup::describe_boundaries(&spec.boundaries),
+        forces: setup.forces.len(),
+        gravity: spec.gravity,
+        initial_velocity: spec.initial_velocity,
+        substeps_total,
+        frame_stats: done.stats,
+        held_total,
+        warnings,
+        wall_time_s: started.elapsed().as_secs_f64(),
+    };
+    output::write_summary(out, &summary)?;
+    Ok(summary)
+}
+
+/// Everything the monomorphised run needs.
+struct Job<'a> {
+    spec: &'a SimSpec,
+    setup: &'a Setup,
+    state: State,
+    mat: Material,
+    frames: u32,
+    out: &'a Path,
+    progress: &'a dyn Progress,
+}
+
+/// What the run produced.
+struct Done {
+    state: State,
+    trajectories: Trajectories,
+    stats: Vec<FrameStats>,
+    warnings: Vec<String>,
+}
+
+impl ModelVisitor for Job<'_> {
+    type Output = Result<Done, SimulateError>;
+
+    fn visit<M: Constitutive + Clone + 'static>(self, model: M) -> Self::Output {
+        self.simulate(model)
+    }
+}
+
+impl Job<'_> {
+    /// `(substeps, reason, unstable)` for the frame about to start, or the refusal.
+    fn substeps<M: Constitutive>(
+        &self,
+        sim: &Simulator<M>,
+        state: &State,
+        frame: u32,
+    ) -> Result<(usize, &'static str, pipe_mpm::StableStep, bool), SimulateError> {
+        let stable = stable_step(
+            sim.model(),
+            state,
+            &self.mat,
+            self.setup.dx,
+            StepLimits::default(),
+        );
+        let frame_dt = self.spec.frame_dt;
+        let Some(user) = self.spec.substeps else {
+            return Ok((
+                stable.substeps_per_frame(frame_dt),
+                stable.limit(),
+                stable,
+                false,
+            ));
+        };
+        let dt = frame_dt / f64::from(user);
+        match stable.check(dt) {
+            Ok(()) => Ok((user as usize, "user", stable, false)),
+            Err(MpmError::StepTooLarge { limit, max_dt, .. }) => {
+                if self.spec.allow_unstable {
+                    Ok((user as usize, "user", stable, true))
+                } else {
+                    Err(SimulateError::UnstableSubsteps {
+                        file: self.spec.file.clone(),
+                        position: self.spec.position("substeps"),
+                        substeps: user,
+                        frame,
+                        dt,
+                        limit,
+                        max_dt,
+                        needed: stable.substeps_per_frame(frame_dt),
+                    })
+                }
+            }
+            Err(source) => Err(SimulateError::Simulation {
+                context: format!("frame {frame}"),
+                source,
+            }),
+        }
+    }
+
+    fn simulate<M: Constitutive + Clone + 'static>(
+        mut self,
+        model: M,
+    ) -> Result<Done, SimulateError> {
+        let mut state = std::mem::replace(&mut self.state, State::at_rest(Vec::new()));
+        let spec = self.spec;
+        let setup = self.setup;
+        let mut cfg = SimConfig::new(setup.domain, setup.dx, spec.frame_dt);
+        cfg.gravity = DVec3::from_array(spec.gravity);
+        cfg.margin = setup::GRID_MARGIN;
+        cfg.boundaries = Boundaries {
+            colliders: setup.colliders.clone(),
+            walls: Some(BoundaryKind::Separate),
+        };
+        cfg.forces = setup.forces.clone();
+        let setup_err = |source| SimulateError::Simulation {
+            context: format!(
+                "setting up the simulator (dx {} m, domain {:?} to {:?} m)",
+                fmt_num(setup.dx),
+                setup.domain.lo.to_array(),
+                setup.domain.hi.to_array()
+            ),
+            source,
+        };
+        let mut sim = Simulator::new(model, cfg).map_err(setup_err)?;
+        sim.validate(&state, &self.mat).map_err(setup_err)?;
+        // Refuse an unstable fixed substep count before writing anything.
+        if self.frames > 1 {
+            self.substeps(&sim, &state, 1)?;
+        }
+
+        let removed = output::prepare_dir(self.out, self.frames)?;
+        if !removed.is_empty() {
+            self.progress.log(&format!(
+                "removed {} stale frame file(s) of an earlier run from {}",
+                removed.len(),
+                self.out.display()
+            ));
+        }
+        output::write_frame(self.out, 0, &state.x)?;
+        let mut traj = Trajectories::default();
+        traj.push_frame(0, &state.x, &state.v);
+        let mut stats = Vec::new();
+        let mut warnings = Vec::new();
+        self.progress
+            .start("simulate", u64::from(self.frames.saturating_sub(1)));
+        for frame in 1..self.frames {
+            let (n_sub, reason, stable, unstable) = self.substeps(&sim, &state, frame)?;
+            let dt = spec.frame_dt / n_sub as f64;
+            if unstable {
+                let w = format!(
+                    "frame {frame}: `substeps` = {n_sub} gives dt = {dt:.3e} s, above the {} \
+                     stability limit {:.3e} s (allow_unstable)",
+                    stable.limit(),
+                    stable.dt()
+                );
+                self.progress.log(&format!("warning: {w}"));
+                warnings.push(w);
+            }
+            let max_speed = state.v.iter().map(|v| v.length()).fold(0.0, f64::max);
+            sim.set_dt(dt).map_err(|source| SimulateError::Simulation {
+                context: format!("frame {frame}"),
+                source,
+            })?;
+            let t0 = f64::from(frame - 1) * spec.frame_dt;
+            let rep = sim
+                .run(&mut state, &self.mat, t0, n_sub)
+                .map_err(|source| {
+                    let why = if unstable {
+                        " (the substep is above the stability limit: allow_unstable)"
+                    } else {
+                        ""
+                    };
+                    SimulateError::Simulation {
+                        context: format!(
+                            "frame {frame} ({n_sub} substeps of {dt:.3e} s from t = {t0:.4} s){why}"
+                        ),
+                        source,
+                    }
+                })?;
+            output::write_frame(self.out, frame, &state.x)?;
+            traj.push_frame(frame as u16, &state.x, &state.v);
+            self.progress.message(&format!(
+                "frame {frame}: {n_sub} substeps ({reason}), held {}",
+                rep.held
+            ));
+            self.progress.inc(1);
+            stats.push(FrameStats {
+                frame,
+                substeps: n_sub,
+                dt_s: dt,
+                substeps_reason: reason.to_string(),
+                binding_limit: stable.limit().to_string(),
+                stable_dt_s: stable.dt(),
+                max_speed_m_s: max_speed,
+                unstable,
+                held: rep.held,
+                max_held: rep.max_held,
+            });
+        }
+        Ok(Done {
+            state,
+            trajectories: traj,
+            stats,
+            warnings,
+        })
+    }
+}

@@ -1,0 +1,330 @@
+//! What `pipe simulate` writes into its output folder, every file atomically:
+//!
+//! - `frame_0000.ply` … `frame_{frames-1}.ply`: positions (m) as binary little-endian
+//!   `float x y z`; frame 0 is the input state;
+//! - `particles.arrow`: the [`Trajectories`] table, one row per particle per frame;
+//! - `summary.json`: the [`Summary`].
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use arrow_array::{Float32Array, RecordBatch, UInt16Array, UInt32Array};
+use arrow_schema::{DataType, Field, Schema};
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+
+use super::SimulateError;
+use super::spec::{BoxSpec, MaterialSpec};
+use crate::io::ply;
+use crate::scene::table::{Table, TableError, column};
+
+/// The `particles` table (`particles.arrow`, Arrow IPC file, one record batch), rows ordered by
+/// frame then particle:
+///
+/// | column | type | meaning |
+/// |---|---|---|
+/// | `frame` | UInt16 | output frame, 0 = input state |
+/// | `id` | UInt32 | particle = vertex index in the input PLY |
+/// | `x`, `y`, `z` | Float32 | position (m) |
+/// | `vx`, `vy`, `vz` | Float32 | velocity (m/s) |
+///
+/// The contract is `schemas/particles.arrow.json`.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Trajectories {
+    /// Frame of each row.
+    pub frame: Vec<u16>,
+    /// Particle of each row.
+    pub id: Vec<u32>,
+    /// Positions (m).
+    pub x: Vec<[f32; 3]>,
+    /// Velocities (m/s).
+    pub v: Vec<[f32; 3]>,
+}
+
+impl Trajectories {
+    /// Appends one frame of positions and velocities (one row per particle, in order).
+    pub fn push_frame(&mut self, frame: u16, x: &[DVec3], v: &[DVec3]) {
+        self.frame.extend(std::iter::repeat_n(frame, x.len()));
+        self.id.extend((0..x.len()).map(|i| i as u32));
+        self.x.extend(x.iter().map(|p| p.as_vec3().to_array()));
+        self.v.extend(v.iter().map(|p| p.as_vec3().to_array()));
+    }
+
+    /// Number of rows.
+    pub fn len(&self) -> usize {
+        self.frame.len()
+    }
+
+    /// `true` without rows.
+    pub fn is_empty(&self) -> bool {
+        self.frame.is_empty()
+    }
+
+    /// Positions of one frame, in particle order.
+    pub fn positions(&self, frame: u16) -> Vec<[f32; 3]> {
+        self.frame
+            .iter()
+            .zip(&self.x)
+            .filter(|(f, _)| **f == frame)
+            .map(|(_, x)| *x)
+            .collect()
+    }
+}
+
+impl Table for Trajectories {
+    const NAME: &'static str = "particles";
+    const VERSION: u32 = 1;
+
+    fn schema() -> Schema {
+        let f32col = |n: &str| Field::new(n, DataType::Float32, false);
+        Schema::new(vec![
+            Field::new("frame", DataType::UInt16, false),
+            Field::new("id", DataType::UInt32, false),
+            f32col("x"),
+            f32col("y"),
+            f32col("z"),
+            f32col("vx"),
+            f32col("vy"),
+            f32col("vz"),
+        ])
+        .with_metadata(
+            [
+                ("schema_version".to_string(), Self::VERSION.to_string()),
+                (
+                    "units".to_string(),
+                    "x y z: m; vx vy vz: m/s; frame 0 = input state; id = input PLY vertex index"
+                        .to_string(),
+                ),
+            ]
+            .into_iter()
+            .collect::<std::collections::HashMap<String, String>>(),
+        )
+    }
+
+    fn to_batch(&self) -> RecordBatch {
+        let comp = |src: &[[f32; 3]], a: usize| -> Arc<dyn arrow_array::Array> {
+            Arc::new(Float32Array::from_iter_values(src.iter().map(|p| p[a])))
+        };
+        RecordBatch::try_new(
+            Arc::new(Self::schema()),
+            vec![
+                Arc::new(UInt16Array::from(self.frame.clone())),
+                Arc::new(UInt32Array::from(self.id.clone())),
+                comp(&self.x, 0),
+                comp(&self.x, 1),
+                comp(&self.x, 2),
+                comp(&self.v, 0),
+                comp(&self.v, 1),
+                comp(&self.v, 2),
+            ],
+        )
+        .expect("columns match the schema")
+    }
+
+    fn from_batch(b: &RecordBatch, _path: &Path) -> Result<Self, TableError> {
+        let f = |n: &str| column::<Float32Array>(b, n).values().to_vec();
+        let zip3 = |a: Vec<f32>, b: Vec<f32>, c: Vec<f32>| -> Vec<[f32; 3]> {
+            a.into_iter()
+                .zip(b)
+                .zip(c)
+                .map(|((x, y), z)| [x, y, z])
+                .collect()
+        };
+        Ok(Self {
+            frame: column::<UInt16Array>(b, "frame").values().to_vec(),
+            id: column::<UInt32Array>(b, "id").values().to_vec(),
+            x: zip3(f("x"), f("y"), f("z")),
+            v: zip3(f("vx"), f("vy"), f("vz")),
+        })
+    }
+}
+
+/// What happened in one simulated frame (from frame − 1 to frame).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameStats {
+    /// The frame reached (1-based; frame 0 is the input).
+    pub frame: u32,
+    /// Substeps taken.
+    pub substeps: usize,
+    /// Substep (s).
+    pub dt_s: f64,
+    /// Why this many: `"user"` (the file's `substeps`) or the binding stability limit
+    /// (`"elastic wave (CFL)"`, `"viscous"`).
+    pub substeps_reason: String,
+    /// The binding stability limit at the frame's start.
+    pub binding_limit: String,
+    /// Its largest stable substep (s).
+    pub stable_dt_s: f64,
+    /// Largest particle speed at the frame's start (m/s).
+    pub max_speed_m_s: f64,
+    /// `dt_s` exceeds `stable_dt_s` (only possible with `allow_unstable`).
+    pub unstable: bool,
+    /// Particle-substeps in which a particle was held at the domain walls.
+    pub held: usize,
+    /// Most particles held in a single substep.
+    pub max_held: usize,
+}
+
+/// `summary.json`: what was simulated, how, and what came out.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Summary {
+    /// `pipe` version.
+    pub pipe_version: String,
+    /// Input PLY.
+    pub particles_file: String,
+    /// Simulation file.
+    pub sim_file: String,
+    /// Material as resolved from the file.
+    pub material: MaterialSpec,
+    /// Output frames written (including frame 0).
+    pub frames: u32,
+    /// Time between frames (s).
+    pub frame_dt_s: f64,
+    /// Simulated time (s): `(frames − 1) · frame_dt`.
+    pub simulated_time_s: f64,
+    /// Particles read.
+    pub particles_in: usize,
+    /// Particles in every written frame (always equal to `particles_in`).
+    pub particles_out: usize,
+    /// Measured particle spacing (m; cube root of the volume per particle), when a default
+    /// needed it.
+    pub spacing_m: Option<f64>,
+    /// Median nearest-neighbour distance (m), when measured.
+    pub median_nn_distance_m: Option<f64>,
+    /// Grid cell size (m).
+    pub dx_m: f64,
+    /// `"file"` or `"2 x spacing"`.
+    pub dx_source: String,
+    /// Volume of one particle (m³).
+    pub particle_volume_m3: f64,
+    /// `"file"` or `"spacing^3"`.
+    pub particle_volume_source: String,
+    /// Mass of one particle (kg) = density · volume.
+    pub particle_mass_kg: f64,
+    /// Total mass (kg).
+    pub total_mass_kg: f64,
+    /// Box the particles are held in (m).
+    pub domain: BoxSpec,
+    /// How the domain was chosen.
+    pub domain_source: String,
+    /// Grid nodes per axis (domain plus the simulator's margin).
+    pub grid_nodes: [usize; 3],
+    /// Boundaries in the order applied.
+    pub boundaries: Vec<String>,
+    /// External forces and impulses.
+    pub forces: usize,
+    /// Gravity (m/s²).
+    pub gravity: [f64; 3],
+    /// Initial velocity (m/s).
+    pub initial_velocity: [f64; 3],
+    /// Substeps over the whole run.
+    pub substeps_total: usize,
+    /// Per simulated frame.
+    pub frame_stats: Vec<FrameStats>,
+    /// Particle-substeps held at the walls over the whole run.
+    pub held_total: usize,
+    /// Things the user should know (automatic choices that may be wrong, unstable steps).
+    pub warnings: Vec<String>,
+    /// Wall-clock time of the whole command (s).
+    pub wall_time_s: f64,
+}
+
+impl Summary {
+    /// A few lines for the terminal: what ran, how many substeps and why, what was written.
+    pub fn report(&self, out: &Path) -> String {
+        let reasons: std::collections::BTreeSet<&str> = self
+            .frame_stats
+            .iter()
+            .map(|f| f.substeps_reason.as_str())
+            .collect();
+        let (lo, hi) = self.frame_stats.iter().fold((usize::MAX, 0), |(a, b), f| {
+            (a.min(f.substeps), b.max(f.substeps))
+        });
+        let steps = if self.frame_stats.is_empty() {
+            "no substeps (frame 0 only)".to_string()
+        } else {
+            format!(
+                "{} substeps ({lo}-{hi} per frame, set by: {})",
+                self.substeps_total,
+                reasons.into_iter().collect::<Vec<_>>().join(", ")
+            )
+        };
+        let mut text = format!(
+            "simulated {} frame(s) of {} particles ({}) in {:.1} s: {steps}; dx {} m, particle \
+             volume {:e} m^3, {} particle-substeps held at the domain walls\nwrote {} frame PLYs, \
+             particles.arrow and summary.json to {}",
+            self.frames.saturating_sub(1),
+            self.particles_out,
+            super::spec::family_name(self.material.family),
+            self.wall_time_s,
+            self.dx_m,
+            self.particle_volume_m3,
+            self.held_total,
+            self.frames,
+            out.display()
+        );
+        for w in &self.warnings {
+            text.push_str(&format!("\nwarning: {w}"));
+        }
+        text
+    }
+}
+
+/// `DIR/frame_0007.ply`.
+pub fn frame_path(dir: &Path, frame: u32) -> PathBuf {
+    dir.join(format!("frame_{frame:04}.ply"))
+}
+
+/// Writes one frame's positions.
+pub fn write_frame(dir: &Path, frame: u32, x: &[DVec3]) -> Result<(), SimulateError> {
+    let pos: Vec<[f32; 3]> = x.iter().map(|p| p.as_vec3().to_array()).collect();
+    ply::write_points(&frame_path(dir, frame), &pos, None)?;
+    Ok(())
+}
+
+/// Creates `dir` and removes `frame_NNNN.ply` files of an earlier, longer run (frames ≥
+/// `frames`), so the folder holds exactly this run's frames. Returns the files removed.
+pub fn prepare_dir(dir: &Path, frames: u32) -> Result<Vec<PathBuf>, SimulateError> {
+    let io = |action: &'static str| {
+        move |source| SimulateError::Io {
+            path: dir.to_path_buf(),
+            action,
+            source,
+        }
+    };
+    std::fs::create_dir_all(dir).map_err(io("create the output folder"))?;
+    let mut removed = Vec::new();
+    for entry in std::fs::read_dir(dir).map_err(io("list the output folder"))? {
+        let entry = entry.map_err(io("list the output folder"))?;
+        let name = entry.file_name();
+        let Some(name) = name.to_str() else { continue };
+        let stale = name
+            .strip_prefix("frame_")
+            .and_then(|s| s.strip_suffix(".ply"))
+            .filter(|d| d.len() >= 4 && d.bytes().all(|b| b.is_ascii_digit()))
+            .and_then(|d| d.parse::<u64>().ok())
+            .is_some_and(|k| k >= u64::from(frames));
+        if stale {
+            std::fs::remove_file(entry.path()).map_err(|source| SimulateError::Io {
+                path: entry.path(),
+                action: "remove a stale frame",
+                source,
+            })?;
+            removed.push(entry.path());
+        }
+    }
+    Ok(removed)
+}
+
+/// Writes `summary.json` atomically.
+pub fn write_summary(dir: &Path, summary: &Summary) -> Result<(), SimulateError> {
+    let path = dir.join("summary.json");
+    let text = serde_json::to_string_pretty(summary).expect("the summary serialises") + "\n";
+    crate::pipeline::cache::write_atomic(&path, text.as_bytes()).map_err(|source| {
+        SimulateError::Io {
+            path,
+            action: "write",
+            source,
+        }
+    })
+}

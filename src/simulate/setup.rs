@@ -1,0 +1,392 @@
+//! From the file and the particles to the simulator's settings: particle spacing, cell size,
+//! particle volume, domain, colliders and forces.
+//!
+//! Defaults (each recorded in the summary with where it came from):
+//! - spacing `s` = cube root of the volume per particle ([`particle_spacing`]);
+//!   `grid_dx = 2 s` and `particle_volume = s³` (PAC-NeRF samples 8 particles per `dx³` cell);
+//! - domain = the particles' box, grown by the reach of free flight over the simulated time
+//!   (`v0 t + g t²/2` on each axis, its extremes over `[0, T]`), plus a margin of
+//!   `max(4 dx, extent/2)` on each side for spreading and bouncing; it stops `2 dx` behind an
+//!   axis-aligned half-space collider (e.g. the ground) the particles start in front of, and
+//!   is shrunk to keep the grid under [`MAX_NODES`] nodes. Particles that still reach the
+//!   edge are held there by the simulator's walls (separating) and counted.
+
+use std::path::Path;
+
+use glam::DVec3;
+use pipe_mpm::{Aabb, Collider, ParticleForce};
+
+use super::SimulateError;
+use super::neighbors::{Spacing, bounds, particle_spacing};
+use super::spec::{BoundarySpec, BoxSpec, ForceSpec, ParticleSet, SimSpec, fmt_num};
+
+/// Largest automatic grid (nodes, including the simulator's 3-cell margin): about 230 MB of
+/// node buffers.
+pub const MAX_NODES: f64 = 4_194_304.0;
+
+/// The simulator margin in cells (see `SimConfig::margin`).
+pub(crate) const GRID_MARGIN: usize = 3;
+
+/// Resolved scene settings.
+#[derive(Debug, Clone)]
+pub struct Setup {
+    /// Measured spacing (when a default needed it).
+    pub spacing: Option<Spacing>,
+    /// Cell size (m).
+    pub dx: f64,
+    /// `"file"` or `"2 x spacing"`.
+    pub dx_source: String,
+    /// Particle volume (m³).
+    pub particle_volume: f64,
+    /// `"file"` or `"spacing^3"`.
+    pub volume_source: String,
+    /// Box the particles are held in (m).
+    pub domain: Aabb,
+    /// How the domain was chosen.
+    pub domain_source: String,
+    /// Colliders, in file order.
+    pub colliders: Vec<Collider>,
+    /// Forces with resolved particle indices.
+    pub forces: Vec<ParticleForce>,
+    /// Things the user should know.
+    pub warnings: Vec<String>,
+}
+
+/// Resolves the settings for `x0` (m), read from `particles`, simulated for `frames` frames.
+pub fn setup(
+    spec: &SimSpec,
+    particles: &Path,
+    x0: &[DVec3],
+    frames: u32,
+) -> Result<Setup, SimulateError> {
+    let mut warnings = Vec::new();
+    let spacing = if spec.grid_dx.is_none() || spec.particle_volume.is_none() {
+        let sp = particle_spacing(x0).ok_or_else(|| SimulateError::Spacing {
+            path: particles.to_path_buf(),
+            message: format!(
+                "cannot measure the particle spacing from {} particle(s) with fewer than two \
+                 distinct positions; set `grid_dx` and `particle_volume` in {}",
+                x0.len(),
+                spec.file.display()
+            ),
+        })?;
+        if sp.interior_cells == 0 {
+            warnings.push(format!(
+                "could not measure the particle density (too few cells lie fully inside the \
+                 cloud: a small, thin or surface-only set): spacing taken as the median \
+                 nearest-neighbour distance {} m; set `grid_dx` and `particle_volume` if that \
+                 is wrong",
+                fmt_num(sp.median_nn)
+            ));
+        }
+        Some(sp)
+    } else {
+        None
+    };
+    let (dx, dx_source) = match (spec.grid_dx, spacing) {
+        (Some(dx), _) => (dx, "file".to_string()),
+        (None, Some(sp)) => (2.0 * sp.spacing, "2 x spacing".to_string()),
+        (None, None) => unreachable!("spacing is measured when grid_dx is missing"),
+    };
+    let (particle_volume, volume_source) = match (spec.particle_volume, spacing) {
+        (Some(v), _) => (v, "file".to_string()),
+        (None, Some(sp)) => (sp.spacing.powi(3), "spacing^3".to_string()),
+        (None, None) => unreachable!("spacing is measured when particle_volume is missing"),
+    };
+    let colliders: Vec<Collider> = spec
+        .boundaries
+        .iter()
+        .map(|b| match *b {
+            BoundarySpec::Ground { y, condition } => Collider::ground(y, condition.kind()),
+            BoundarySpec::HalfSpace {
+                point,
+                normal,
+                condition,
+            } => Collider::HalfSpace {
+                point: DVec3::from_array(point),
+                normal: DVec3::from_array(normal),
+                kind: condition.kind(),
+            },
+            BoundarySpec::Box { aabb, condition } => Collider::Box {
+                aabb: Aabb::new(DVec3::from_array(aabb.min), DVec3::from_array(aabb.max)),
+                kind: condition.kind(),
+            },
+        })
+        .collect();
+    let (lo0, hi0) = bounds(x0).expect("particles are not empty");
+    let (domain, domain_source) = match spec.domain {
+        Some(b) => {
+            let d = Aabb::new(DVec3::from_array(b.min), DVec3::from_array(b.max));
+            let outside = x0.iter().filter(|p| !d.contains(**p)).count();
+            if outside > 0 {
+                warnings.push(format!(
+                    "{outside} particle(s) start outside `domain`; they are moved to its edge"
+                ));
+            }
+            (d, "file".to_string())
+        }
+        None => auto_domain(spec, &colliders, lo0, hi0, dx, frames, &mut warnings),
+    };
+    let forces = spec
+        .forces
+        .iter()
+        .enumerate()
+        .map(|(i, f)| resolve_force(spec, i, f, x0))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(Setup {
+        spacing,
+        dx,
+        dx_source,
+        particle_volume,
+        volume_source,
+        domain,
+        domain_source,
+        colliders,
+        forces,
+        warnings,
+    })
+}
+
+/// Grid nodes for a domain (the simulator's layout: margin cells on each side).
+pub fn grid_nodes(domain: &Aabb, dx: f64) -> [usize; 3] {
+    let lo = (domain.lo / dx).floor() - DVec3::splat(GRID_MARGIN as f64);
+    let hi = (domain.hi / dx).ceil() + DVec3::splat(GRID_MARGIN as f64);
+    let d = hi - lo + DVec3::ONE;
+    [d.x as usize, d.y as usize, d.z as usize]
+}
+
+fn node_count(domain: &Aabb, dx: f64) -> f64 {
+    grid_nodes(domain, dx).iter().map(|&n| n as f64).product()
+}
+
+fn auto_domain(
+    spec: &SimSpec,
+    colliders: &[Collider],
+    lo0: DVec3,
+    hi0: DVec3,
+    dx: f64,
+    frames: u32,
+    warnings: &mut Vec<String>,
+) -> (Aabb, String) {
+    let t = f64::from(frames.saturating_sub(1)) * spec.frame_dt;
+    let v0 = DVec3::from_array(spec.initial_velocity);
+    let g = DVec3::from_array(spec.gravity);
+    // Extremes of d(τ) = v0 τ + g τ²/2 over τ ∈ [0, t], per axis.
+    let mut dmin = DVec3::ZERO;
+    let mut dmax = DVec3::ZERO;
+    for a in 0..3 {
+        let d = |tau: f64| v0[a] * tau + 0.5 * g[a] * tau * tau;
+        let mut cands = vec![0.0, d(t)];
+        if g[a] != 0.0 {
+            let ts = -v0[a] / g[a];
+            if ts > 0.0 && ts < t {
+                cands.push(d(ts));
+            }
+        }
+        dmin[a] = cands.iter().copied().fold(f64::INFINITY, f64::min);
+        dmax[a] = cands.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    }
+    let extent = (hi0 - lo0).max_element();
+    let full_margin = (4.0 * dx).max(0.5 * extent);
+    let build = |reach: f64, margin: f64| {
+        let mut lo = lo0 + dmin * reach - DVec3::splat(margin);
+        let mut hi = hi0 + dmax * reach + DVec3::splat(margin);
+        // Stop behind axis-aligned planes the particles start in front of.
+        for c in colliders {
+            if let Collider::HalfSpace { point, normal, .. } = c {
+                for a in 0..3 {
+                    if (normal[a] - 1.0).abs() < 1e-9 && lo0[a] >= point[a] {
+                        lo[a] = lo[a].max(point[a] - 2.0 * dx);
+                    } else if (normal[a] + 1.0).abs() < 1e-9 && hi0[a] <= point[a] {
+                        hi[a] = hi[a].min(point[a] + 2.0 * dx);
+                    }
+                }
+            }
+        }
+        Aabb::new(lo.min(lo0), hi.max(hi0))
+    };
+    let mut reach = 1.0;
+    let mut margin = full_margin;
+    let mut domain = build(reach, margin);
+    let mut limited = false;
+    while node_count(&domain, dx) > MAX_NODES && (reach > 1e-3 || margin > 4.0 * dx) {
+        limited = true;
+        if reach > 1e-3 {
+            reach *= 0.5;
+        } else {
+            margin = (margin * 0.5).max(4.0 * dx);
+        }
+        domain = build(reach, margin);
+    }
+    let mut source = format!(
+        "auto: particle box grown by the free-flight reach over {t:.4} s plus a margin of {margin:.4} m"
+    );
+    if limited {
+        source.push_str(&format!(
+            " (reach scaled by {reach} to stay under {MAX_NODES} grid nodes)"
+        ));
+        warnings.push(format!(
+            "the automatic domain was limited to about {MAX_NODES} grid nodes; particles that \
+             reach its edge are held there (see `held` per frame); set `domain` to choose it"
+        ));
+    }
+    (domain, source)
+}
+
+fn resolve_force(
+    spec: &SimSpec,
+    i: usize,
+    f: &ForceSpec,
+    x0: &[DVec3],
+) -> Result<ParticleForce, SimulateError> {
+    let n = x0.len();
+    let path = format!("forces[{i}].particles");
+    let set = match f {
+        ForceSpec::Force { particles, .. } | ForceSpec::Impulse { particles, .. } => particles,
+    };
+    let particles: Vec<usize> = match set {
+        ParticleSet::All => (0..n).collect(),
+        ParticleSet::Indices(ids) => {
+            if let Some((j, &bad)) = ids.iter().enumerate().find(|(_, p)| **p >= n as u64) {
+                return Err(spec.error_at(
+                    &format!("{path}[{j}]"),
+                    format!("invalid `{path}[{j}]` = {bad}"),
+                    Some(format!(
+                        "the input has {n} particles (indices 0 to {})",
+                        n - 1
+                    )),
+                ));
+            }
+            ids.iter().map(|&p| p as usize).collect()
+        }
+        ParticleSet::Box(BoxSpec { min, max }) => {
+            let b = Aabb::new(DVec3::from_array(*min), DVec3::from_array(*max));
+            let sel: Vec<usize> = (0..n).filter(|&p| b.contains(x0[p])).collect();
+            if sel.is_empty() {
+                let (lo, hi) = bounds(x0).expect("particles are not empty");
+                return Err(spec.error_at(
+                    &path,
+                    format!("the box `{path}` {{min: {min:?}, max: {max:?}}} selects no particle"),
+                    Some(format!(
+                        "the initial particles span {:?} to {:?} m",
+                        lo.to_array(),
+                        hi.to_array()
+                    )),
+                ));
+            }
+            sel
+        }
+    };
+    Ok(match *f {
+        ForceSpec::Force {
+            force, start, end, ..
+        } => ParticleForce::Force {
+            particles,
+            force: DVec3::from_array(force),
+            start,
+            end: end.unwrap_or(f64::MAX),
+        },
+        ForceSpec::Impulse { impulse, time, .. } => ParticleForce::Impulse {
+            particles,
+            impulse: DVec3::from_array(impulse),
+            time,
+        },
+    })
+}
+
+/// One line per boundary, for the summary.
+pub fn describe_boundaries(boundaries: &[BoundarySpec]) -> Vec<String> {
+    let name = |c: &super::spec::Condition| match c {
+        super::spec::Condition::Sticky => "sticky",
+        super::spec::Condition::Slip => "slip",
+        super::spec::Condition::Separate => "separate",
+    };
+    let mut out: Vec<String> = boundaries
+        .iter()
+        .map(|b| match b {
+            BoundarySpec::Ground { y, condition } => {
+                format!("ground y = {} m ({})", fmt_num(*y), name(condition))
+            }
+            BoundarySpec::HalfSpace {
+                point,
+                normal,
+                condition,
+            } => format!(
+                "half_space through {point:?} m, normal {normal:?} ({})",
+                name(condition)
+            ),
+            BoundarySpec::Box { aabb, condition } => format!(
+                "box {:?} to {:?} m ({})",
+                aabb.min,
+                aabb.max,
+                name(condition)
+            ),
+        })
+        .collect();
+    out.push("domain walls (separate; particles reaching them are held and counted)".into());
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(text: &str) -> SimSpec {
+        SimSpec::parse(Path::new("sim.yaml"), text).unwrap()
+    }
+
+    fn block() -> Vec<DVec3> {
+        (0..4)
+            .flat_map(|i| (0..4).flat_map(move |j| (0..4).map(move |k| (i, j, k))))
+            .map(|(i, j, k)| DVec3::new(i as f64, 10.0 + j as f64, k as f64) * 0.01)
+            .collect()
+    }
+
+    const MAT: &str =
+        "material: {family: elastic, youngs_modulus: 1e5, poisson_ratio: 0.3, density: 1000}\n";
+
+    #[test]
+    fn domain_covers_the_flight_and_stops_at_the_ground() {
+        let s = spec(&format!(
+            "{MAT}frame_dt: 0.04\ngrid_dx: 0.02\nparticle_volume: 1e-6\n\
+             initial_velocity: [1, 2, 0]\nboundaries: [{{kind: ground, y: 0}}]\n"
+        ));
+        let x = block();
+        let st = setup(&s, Path::new("p.ply"), &x, 26).unwrap();
+        assert_eq!((st.dx, st.particle_volume), (0.02, 1e-6));
+        let (d, t) = (st.domain, 1.0);
+        // x: 1 m of flight; y: up to the apex v²/2g above, down to 2 dx below the ground.
+        assert!(d.hi.x >= 0.03 + t && d.lo.x <= -0.08 + 1e-12, "{d:?}");
+        assert!(d.hi.y >= 0.13 + 4.0 / 19.6, "{d:?}");
+        assert!((d.lo.y + 0.04).abs() < 1e-12, "{d:?}");
+        assert!(st.warnings.is_empty());
+    }
+
+    #[test]
+    fn a_long_fall_without_ground_is_limited() {
+        let s = spec(&format!("{MAT}frame_dt: 0.04\n"));
+        let st = setup(&s, Path::new("p.ply"), &block(), 2000).unwrap();
+        assert!(node_count(&st.domain, st.dx) <= MAX_NODES);
+        assert!(
+            st.warnings.iter().any(|w| w.contains("limited")),
+            "{:?}",
+            st.warnings
+        );
+        assert!(st.domain_source.contains("reach scaled"));
+    }
+
+    #[test]
+    fn one_particle_needs_explicit_sizes() {
+        let s = spec(&format!("{MAT}frame_dt: 0.04\n"));
+        let e = setup(&s, Path::new("p.ply"), &[DVec3::ONE], 2).unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("p.ply: cannot measure the particle spacing from 1 particle"),
+            "{e}"
+        );
+        let s = spec(&format!(
+            "{MAT}frame_dt: 0.04\ngrid_dx: 0.1\nparticle_volume: 1e-4\n"
+        ));
+        assert!(setup(&s, Path::new("p.ply"), &[DVec3::ONE], 2).is_ok());
+    }
+}

@@ -1,0 +1,643 @@
+//! Stage `warmup`: static 3DGS optimisation of the canonical Gaussians on the first frame(s)
+//! (Kerbl et al. 2023): Adam on positions, log-scales, rotations, opacity logits and SH, the loss
+//! λ·L1 + (1 − λ)·D-SSIM against the white-composited object images, adaptive density control
+//! and opacity resets. Writes the canonical `gaussians.arrow`, `metrics.arrow` (training curve,
+//! held-out PSNR/SSIM) and `renders/` (test views next to ground truth).
+
+pub mod adam;
+pub mod density;
+
+use std::path::Path;
+
+use rand::SeedableRng;
+use rand::seq::SliceRandom;
+use schemas::WarmupParams;
+use serde_json::{Value, json};
+
+use self::adam::AdamConfig;
+use self::density::{DensifyConfig, DensityStats, GroupStates};
+use crate::io::image::{self, Rgb8};
+use crate::pipeline::spec::Preset;
+use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
+use crate::scene::camera::Camera;
+use crate::scene::frames::{FrameRow, Frames, Role};
+use crate::scene::gaussians::Gaussians;
+use crate::scene::splat;
+use crate::scene::table::{self, Table};
+
+/// Parameters of `warmup` (kept in their own module so the stage reads top-down).
+pub mod schemas {
+    use schemars::JsonSchema;
+    use serde::{Deserialize, Serialize};
+
+    /// Parameters of `warmup`.
+    #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+    #[serde(deny_unknown_fields)]
+    pub struct WarmupParams {
+        /// Frames whose images are fitted (the canonical state).
+        #[serde(default = "frames")]
+        pub frames: Vec<u16>,
+        /// Passes over all training images of those frames.
+        #[serde(default = "epochs")]
+        pub epochs: u32,
+        /// Weight of L1 in λ·L1 + (1 − λ)·D-SSIM.
+        #[serde(default = "lambda")]
+        pub lambda: f64,
+        /// Position learning rate at the start, × scene extent (3DGS: 1.6e-4).
+        #[serde(default = "lr_position")]
+        pub lr_position: f32,
+        /// Position learning rate at the end (exponential decay), × scene extent.
+        #[serde(default = "lr_position_final")]
+        pub lr_position_final: f32,
+        /// Learning rate of the SH DC term (higher orders use 1/20 of it).
+        #[serde(default = "lr_sh")]
+        pub lr_sh: f32,
+        /// Learning rate of opacity logits.
+        #[serde(default = "lr_opacity")]
+        pub lr_opacity: f32,
+        /// Learning rate of log-scales.
+        #[serde(default = "lr_scale")]
+        pub lr_scale: f32,
+        /// Learning rate of quaternions.
+        #[serde(default = "lr_rotation")]
+        pub lr_rotation: f32,
+        /// Densify from this fraction of the iterations...
+        #[serde(default = "densify_from")]
+        pub densify_from: f32,
+        /// ...until this fraction.
+        #[serde(default = "densify_until")]
+        pub densify_until: f32,
+        /// Iterations between densification steps.
+        #[serde(default = "densify_every")]
+        pub densify_every: u32,
+        /// Mean NDC gradient threshold of densification (3DGS: 2e-4).
+        #[serde(default = "grad_threshold")]
+        pub grad_threshold: f32,
+        /// Iterations between opacity resets (0 = never).
+        #[serde(default = "opacity_reset_every")]
+        pub opacity_reset_every: u32,
+        /// Upper bound on the number of Gaussians.
+        #[serde(default = "max_gaussians")]
+        pub max_gaussians: u32,
+        /// Weight of the silhouette term mean |α − mask| (the object is opaque inside its
+        /// mask and absent outside); 0 disables it.
+        #[serde(default = "alpha_weight")]
+        pub alpha_weight: f64,
+        /// Seed of the view order and of splits.
+        #[serde(default)]
+        pub seed: u64,
+    }
+
+    fn alpha_weight() -> f64 {
+        0.1
+    }
+
+    fn frames() -> Vec<u16> {
+        vec![0]
+    }
+    fn epochs() -> u32 {
+        200
+    }
+    fn lambda() -> f64 {
+        0.1
+    }
+    fn lr_position() -> f32 {
+        1.6e-4
+    }
+    fn lr_position_final() -> f32 {
+        1.6e-6
+    }
+    fn lr_sh() -> f32 {
+        2.5e-3
+    }
+    fn lr_opacity() -> f32 {
+        0.05
+    }
+    fn lr_scale() -> f32 {
+        5e-3
+    }
+    fn lr_rotation() -> f32 {
+        1e-3
+    }
+    fn densify_from() -> f32 {
+        0.1
+    }
+    fn densify_until() -> f32 {
+        0.6
+    }
+    fn densify_every() -> u32 {
+        100
+    }
+    fn grad_threshold() -> f32 {
+        2e-4
+    }
+    fn opacity_reset_every() -> u32 {
+        3000
+    }
+    fn max_gaussians() -> u32 {
+        200_000
+    }
+}
+
+/// Problems specific to warmup.
+#[derive(Debug, thiserror::Error)]
+pub enum WarmupError {
+    /// Reading an upstream table failed.
+    #[error(transparent)]
+    Table(#[from] table::TableError),
+    /// Reading or writing an image failed.
+    #[error(transparent)]
+    Image(#[from] image::ImageError),
+    /// The rasterizer refused its input.
+    #[error("rendering view {view} frame {frame}: {source}")]
+    Render {
+        /// Camera.
+        view: u16,
+        /// Frame.
+        frame: u16,
+        /// Why.
+        source: pipe_render::RenderError,
+    },
+    /// The loss refused its input.
+    #[error("loss: {0}")]
+    Loss(#[from] pipe_loss::LossError),
+    /// A non-finite value appeared.
+    #[error(
+        "non-finite {quantity} at epoch {epoch}, iteration {iteration} (view {view}, frame {frame}); lower stages.warmup.lr_position or lr_scale and re-run"
+    )]
+    NonFinite {
+        /// What became NaN/Inf.
+        quantity: &'static str,
+        /// Epoch (0-based).
+        epoch: u32,
+        /// Iteration (1-based).
+        iteration: u32,
+        /// Camera.
+        view: u16,
+        /// Frame.
+        frame: u16,
+    },
+    /// The inputs cannot be trained on.
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// The `warmup` stage.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Warmup;
+
+/// A training or test image in memory.
+struct Target {
+    row: FrameRow,
+    camera: pipe_render::Camera<f32>,
+    pixels: Vec<f32>,
+    /// Object mask in [0, 1].
+    mask: Vec<f32>,
+}
+
+fn load_targets(dir: &Path, rows: &[&FrameRow]) -> Result<Vec<Target>, StageError> {
+    rows.iter()
+        .map(|r| {
+            let img = image::read_rgb8(&dir.join(&r.image)).map_err(StageError::failed)?;
+            let (_, _, mask) = image::read_gray8(&dir.join(&r.mask)).map_err(StageError::failed)?;
+            Ok(Target {
+                row: (*r).clone(),
+                camera: splat::render_camera(&Camera::from_row(r)),
+                pixels: img.data.iter().map(|v| f32::from(*v) / 255.0).collect(),
+                mask: mask.iter().map(|v| f32::from(*v) / 255.0).collect(),
+            })
+        })
+        .collect()
+}
+
+impl TypedStage for Warmup {
+    type Params = WarmupParams;
+    const KIND: &'static str = "warmup";
+    const VERSION: u32 = 1;
+    const DESCRIPTION: &'static str = "Fit the canonical 3D Gaussians to the first frame(s) (3DGS: Adam, L1 + D-SSIM, densification)";
+    const UPSTREAM: &'static [&'static str] = &["ingest", "init"];
+
+    fn output_schemas(&self) -> Vec<(&'static str, u32)> {
+        vec![(Gaussians::NAME, Gaussians::VERSION)]
+    }
+
+    fn preset_params(&self, preset: Preset) -> Value {
+        match preset {
+            Preset::Draft => json!({"epochs": 100, "densify_every": 50, "max_gaussians": 30000}),
+            Preset::Standard => json!({"epochs": 400, "densify_every": 100}),
+            Preset::Paper => json!({"epochs": 3000, "densify_every": 100}),
+        }
+    }
+
+    fn validate(&self, p: &WarmupParams) -> Result<(), ParamError> {
+        let bad = |path: &str, message: String| {
+            Err(ParamError {
+                path: path.into(),
+                message,
+            })
+        };
+        if p.frames.is_empty() {
+            return bad("frames", "needs at least one frame".into());
+        }
+        if p.epochs == 0 {
+            return bad("epochs", "must be at least 1".into());
+        }
+        if !(0.0..=1.0).contains(&p.lambda) {
+            return bad("lambda", format!("must be in [0, 1], found {}", p.lambda));
+        }
+        for (name, v) in [
+            ("lr_position", p.lr_position),
+            ("lr_position_final", p.lr_position_final),
+            ("lr_sh", p.lr_sh),
+            ("lr_opacity", p.lr_opacity),
+            ("lr_scale", p.lr_scale),
+            ("lr_rotation", p.lr_rotation),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(name, format!("must be finite and >= 0, found {v}"));
+            }
+        }
+        if !(0.0..=1.0).contains(&p.densify_from)
+            || !(p.densify_from..=1.0).contains(&p.densify_until)
+        {
+            return bad(
+                "densify_until",
+                format!(
+                    "need 0 <= densify_from ({}) <= densify_until ({}) <= 1",
+                    p.densify_from, p.densify_until
+                ),
+            );
+        }
+        if p.densify_every == 0 {
+            return bad("densify_every", "must be at least 1".into());
+        }
+        Ok(())
+    }
+
+    fn run(&self, p: &WarmupParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
+        let ingest = ctx.upstream("ingest")?.clone();
+        let background: [f32; 3] =
+            serde_json::from_value(ingest.manifest.key_material.params["background"].clone())
+                .unwrap_or([1.0, 1.0, 1.0]);
+        let frames: Frames =
+            table::read(&ingest.dir.join("frames.arrow")).map_err(StageError::failed)?;
+        let mut g: Gaussians = table::read(&ctx.upstream("init")?.dir.join("gaussians.arrow"))
+            .map_err(StageError::failed)?;
+        if g.is_empty() {
+            return Err(StageError::failed(WarmupError::Invalid(
+                "init produced no Gaussians".into(),
+            )));
+        }
+        let pick = |role: Role| -> Vec<&FrameRow> {
+            frames
+                .rows
+                .iter()
+                .filter(|r| r.role == role && p.frames.contains(&r.frame))
+                .collect()
+        };
+        let train = load_targets(&ingest.dir, &pick(Role::Train))?;
+        let test = load_targets(&ingest.dir, &pick(Role::Test))?;
+        if train.is_empty() {
+            return Err(StageError::failed(WarmupError::Invalid(format!(
+                "stages.warmup.frames {:?}: no training image (frames available: 0..{})",
+                p.frames,
+                frames.rows.iter().map(|r| r.frame).max().unwrap_or(0)
+            ))));
+        }
+
+        // Scene extent as in 3DGS: radius of the camera centres around their mean, × 1.1.
+        let centres: Vec<glam::DVec3> = train
+            .iter()
+            .map(|t| Camera::from_row(&t.row).centre_world)
+            .collect();
+        let mean = centres.iter().sum::<glam::DVec3>() / centres.len() as f64;
+        let extent = (centres
+            .iter()
+            .map(|c| (*c - mean).length())
+            .fold(0.0, f64::max)
+            * 1.1)
+            .max(1e-3) as f32;
+
+        let opts = pipe_render::RenderOptions {
+            background,
+            ..Default::default()
+        };
+        let iters_per_epoch = train.len() as u32;
+        let total = p.epochs * iters_per_epoch;
+        let densify_from = (p.densify_from * total as f32) as u32;
+        let densify_until = (p.densify_until * total as f32) as u32;
+        let cfg = AdamConfig::default();
+        let mut states = GroupStates::new(&g);
+        let mut stats = DensityStats::new(g.len());
+        let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(p.seed);
+        let k = g.sh.len() / g.len();
+        let (w, h) = (train[0].row.width as usize, train[0].row.height as usize);
+        let mut order: Vec<usize> = (0..train.len()).collect();
+        let mut t = 0u32;
+        ctx.progress.start("epoch", u64::from(p.epochs));
+        for epoch in 0..p.epochs {
+            ctx.check_interrupted()?;
+            order.shuffle(&mut rng);
+            let (mut loss_sum, mut psnr_sum) = (0.0f64, 0.0f64);
+            for &vi in &order {
+                t += 1;
+                let target = &train[vi];
+                let (view, frame) = (target.row.view, target.row.frame);
+                let nonfinite = |quantity| {
+                    StageError::failed(WarmupError::NonFinite {
+                        quantity,
+                        epoch,
+                        iteration: t,
+                        view,
+                        frame,
+                    })
+                };
+                let rg = splat::render_gaussians(&g);
+                let out = pipe_render::render(&rg, &target.camera, &opts).map_err(|source| {
+                    StageError::failed(WarmupError::Render {
+                        view,
+                        frame,
+                        source,
+                    })
+                })?;
+                let rendered = pipe_loss::Image::from_rgb("render", &out.image, w, h)
+                    .map_err(StageError::failed)?;
+                let gt = pipe_loss::Image::new("target", &target.pixels, w, h)
+                    .map_err(StageError::failed)?;
+                let (mut loss, d_image) =
+                    pipe_loss::l1_dssim(rendered, gt, p.lambda).map_err(StageError::failed)?;
+                // Silhouette term: w·mean|α − mask|, gradient w·sign(α − mask)/n.
+                let d_alpha: Option<Vec<f32>> = (p.alpha_weight > 0.0).then(|| {
+                    let n = out.alpha.len() as f64;
+                    let wgt = (p.alpha_weight / n) as f32;
+                    loss += p.alpha_weight
+                        * out
+                            .alpha
+                            .iter()
+                            .zip(&target.mask)
+                            .map(|(a, m)| f64::from((a - m).abs()))
+                            .sum::<f64>()
+                        / n;
+                    out.alpha
+                        .iter()
+                        .zip(&target.mask)
+                        .map(|(a, m)| wgt * (a - m).signum())
+                        .collect()
+                });
+                if !loss.is_finite() {
+                    return Err(nonfinite("loss"));
+                }
+                loss_sum += loss;
+                psnr_sum += pipe_loss::psnr(rendered, gt).map_err(StageError::failed)?;
+                let (d_image, _) = d_image.as_chunks::<3>();
+                let grads = pipe_render::backward(
+                    &rg,
+                    &target.camera,
+                    &opts,
+                    &out,
+                    d_image,
+                    d_alpha.as_deref(),
+                )
+                .map_err(|source| {
+                    StageError::failed(WarmupError::Render {
+                        view,
+                        frame,
+                        source,
+                    })
+                })?;
+                for (name, ok) in [
+                    (
+                        "gradient of positions",
+                        grads.means.as_flattened().iter().all(|v| v.is_finite()),
+                    ),
+                    (
+                        "gradient of log-scales",
+                        grads
+                            .log_scales
+                            .as_flattened()
+                            .iter()
+                            .all(|v| v.is_finite()),
+                    ),
+                    (
+                        "gradient of rotations",
+                        grads.quats.as_flattened().iter().all(|v| v.is_finite()),
+                    ),
+                    (
+                        "gradient of opacities",
+                        grads.opacity_logits.iter().all(|v| v.is_finite()),
+                    ),
+                    (
+                        "gradient of SH",
+                        grads.sh.as_flattened().iter().all(|v| v.is_finite()),
+                    ),
+                ] {
+                    if !ok {
+                        return Err(nonfinite(name));
+                    }
+                }
+                // Densification statistics.
+                if t < densify_until {
+                    let radius: Vec<f32> =
+                        out.projected.iter().map(|pg| pg.radius as f32).collect();
+                    stats.add(&grads.means2d, &radius, w as u32, h as u32);
+                }
+                // Adam steps.
+                let progress = t as f32 / total.max(1) as f32;
+                let lr_pos = p.lr_position
+                    * (p.lr_position_final / p.lr_position.max(1e-30)).powf(progress)
+                    * extent;
+                let lr_pos = if p.lr_position == 0.0 { 0.0 } else { lr_pos };
+                states.position.step(
+                    &cfg,
+                    t,
+                    g.position.as_flattened_mut(),
+                    grads.means.as_flattened(),
+                    |_| lr_pos,
+                );
+                states.log_scale.step(
+                    &cfg,
+                    t,
+                    g.log_scale.as_flattened_mut(),
+                    grads.log_scales.as_flattened(),
+                    |_| p.lr_scale,
+                );
+                states.rotation.step(
+                    &cfg,
+                    t,
+                    g.rotation.as_flattened_mut(),
+                    grads.quats.as_flattened(),
+                    |_| p.lr_rotation,
+                );
+                states
+                    .opacity
+                    .step(&cfg, t, &mut g.opacity_logit, &grads.opacity_logits, |_| {
+                        p.lr_opacity
+                    });
+                let lr_sh = p.lr_sh;
+                states
+                    .sh
+                    .step(&cfg, t, &mut g.sh, grads.sh.as_flattened(), |j| {
+                        if j < 3 { lr_sh } else { lr_sh / 20.0 }
+                    });
+                if g.position.as_flattened().iter().any(|v| !v.is_finite()) {
+                    return Err(nonfinite("position after the Adam step"));
+                }
+                // Density control.
+                if t >= densify_from && t < densify_until && t.is_multiple_of(p.densify_every) {
+                    let dcfg = DensifyConfig {
+                        grad_threshold: p.grad_threshold,
+                        percent_dense: 0.01,
+                        min_opacity: 0.005,
+                        max_screen_radius: if t > p.opacity_reset_every && p.opacity_reset_every > 0
+                        {
+                            20.0
+                        } else {
+                            0.0
+                        },
+                        max_world_scale: 0.1,
+                        extent,
+                        max_gaussians: p.max_gaussians as usize,
+                    };
+                    density::densify(&mut g, &mut states, &stats, &dcfg, &mut rng);
+                    stats = DensityStats::new(g.len());
+                }
+                if p.opacity_reset_every > 0 && t.is_multiple_of(p.opacity_reset_every) && t < densify_until
+                {
+                    density::reset_opacity(&mut g, &mut states, 0.01);
+                }
+            }
+            let n = f64::from(iters_per_epoch);
+            ctx.progress.message(&format!(
+                "loss {:.4}  psnr {:.2} dB  {} Gaussians",
+                loss_sum / n,
+                psnr_sum / n,
+                g.len()
+            ));
+            ctx.progress.inc(1);
+            for (metric, value) in [
+                ("loss", loss_sum / n),
+                ("train_psnr", psnr_sum / n),
+                ("gaussians", g.len() as f64),
+            ] {
+                ctx.metric(MetricRow {
+                    epoch: Some(epoch),
+                    view: None,
+                    frame: None,
+                    metric: metric.into(),
+                    value,
+                });
+            }
+        }
+        debug_assert_eq!(g.sh.len(), g.len() * k);
+
+        // Held-out views (and the training views, for reference).
+        std::fs::create_dir_all(ctx.out_dir.join("renders")).map_err(StageError::failed)?;
+        let rg = splat::render_gaussians(&g);
+        let mut summary = Vec::new();
+        for (set, targets) in [("test", &test), ("train", &train)] {
+            let (mut psnr_sum, mut ssim_sum) = (0.0, 0.0);
+            for target in targets.iter() {
+                let (view, frame) = (target.row.view, target.row.frame);
+                let out = pipe_render::render(&rg, &target.camera, &opts).map_err(|source| {
+                    StageError::failed(WarmupError::Render {
+                        view,
+                        frame,
+                        source,
+                    })
+                })?;
+                let rendered = pipe_loss::Image::from_rgb("render", &out.image, w, h)
+                    .map_err(StageError::failed)?;
+                let gt = pipe_loss::Image::new("target", &target.pixels, w, h)
+                    .map_err(StageError::failed)?;
+                let psnr = pipe_loss::psnr(rendered, gt).map_err(StageError::failed)?;
+                let ssim = pipe_loss::ssim(rendered, gt).map_err(StageError::failed)?;
+                psnr_sum += psnr;
+                ssim_sum += ssim;
+                for (metric, value) in
+                    [(format!("{set}_psnr"), psnr), (format!("{set}_ssim"), ssim)]
+                {
+                    ctx.metric(MetricRow {
+                        epoch: None,
+                        view: Some(view),
+                        frame: Some(frame),
+                        metric,
+                        value,
+                    });
+                }
+                if set == "test" {
+                    let render = Rgb8 {
+                        width: w as u32,
+                        height: h as u32,
+                        data: splat::to_rgb8(&out.image),
+                    };
+                    image::write_rgb8(
+                        &ctx.out_dir
+                            .join(format!("renders/test_v{view}_f{frame}.png")),
+                        &render,
+                    )
+                    .map_err(StageError::failed)?;
+                    let truth: Vec<u8> = target
+                        .pixels
+                        .iter()
+                        .map(|v| (v * 255.0).round() as u8)
+                        .collect();
+                    let side = side_by_side(&truth, &render.data, w, h);
+                    image::write_rgb8(
+                        &ctx.out_dir
+                            .join(format!("renders/compare_v{view}_f{frame}.png")),
+                        &side,
+                    )
+                    .map_err(StageError::failed)?;
+                }
+            }
+            if !targets.is_empty() {
+                let n = targets.len() as f64;
+                summary.push(format!(
+                    "{set} PSNR {:.2} dB, SSIM {:.4} ({} views)",
+                    psnr_sum / n,
+                    ssim_sum / n,
+                    targets.len()
+                ));
+                for (metric, value) in [
+                    (format!("{set}_psnr_mean"), psnr_sum / n),
+                    (format!("{set}_ssim_mean"), ssim_sum / n),
+                ] {
+                    ctx.metric(MetricRow {
+                        epoch: None,
+                        view: None,
+                        frame: None,
+                        metric,
+                        value,
+                    });
+                }
+            }
+        }
+        ctx.progress
+            .log(&format!("{} Gaussians; {}", g.len(), summary.join("; ")));
+        table::write(&ctx.out_dir.join("gaussians.arrow"), &g).map_err(StageError::failed)?;
+        Ok(())
+    }
+}
+
+/// Ground truth | render | 4× absolute difference, side by side.
+fn side_by_side(truth: &[u8], render: &[u8], w: usize, h: usize) -> Rgb8 {
+    let mut data = vec![0u8; 3 * w * h * 3];
+    for y in 0..h {
+        for x in 0..w {
+            for c in 0..3 {
+                let i = (y * w + x) * 3 + c;
+                let row = y * 3 * w * 3;
+                data[row + x * 3 + c] = truth[i];
+                data[row + (w + x) * 3 + c] = render[i];
+                data[row + (2 * w + x) * 3 + c] = (4
+                    * (i32::from(truth[i]) - i32::from(render[i])).unsigned_abs())
+                .min(255) as u8;
+            }
+        }
+    }
+    Rgb8 {
+        width: 3 * w as u32,
+        height: h as u32,
+        data,
+    }
+}
