@@ -4,6 +4,7 @@ pub mod camera;
 pub mod frames;
 pub mod gaussians;
 pub mod metrics;
+pub mod neighbors;
 pub mod splat;
 pub mod table;
 pub mod visual_hull;

@@ -5,7 +5,7 @@
 //!    parameters, initial velocity, gravity, frame time, boundaries, forces, substeps);
 //! 2. the particles are read from any point-cloud or 3DGS PLY (`x y z`);
 //! 3. [`setup::setup`] resolves the defaults: particle spacing (hash-grid density, see
-//!    [`neighbors::particle_spacing`]), `grid_dx = 2·spacing`, `particle_volume = spacing³`,
+//!    [`crate::scene::neighbors::particle_spacing`]), `grid_dx = 2·spacing`, `particle_volume = spacing³`,
 //!    and a domain covering where the particles can go;
 //! 4. the family picks one monomorphised `pipe_mpm::Simulator`; every frame takes the
 //!    substeps the stability limit needs at its start (recomputed from the largest speed), or
@@ -16,7 +16,6 @@
 //! The particle count never changes: particles that reach the domain edge are held there by
 //! the walls and counted per frame (`held`).
 
-pub mod neighbors;
 pub mod output;
 pub mod setup;
 pub mod spec;

@@ -17,8 +17,8 @@ use glam::DVec3;
 use pipe_mpm::{Aabb, Collider, ParticleForce};
 
 use super::SimulateError;
-use super::neighbors::{Spacing, bounds, particle_spacing};
 use super::spec::{BoundarySpec, BoxSpec, ForceSpec, ParticleSet, SimSpec, fmt_num};
+use crate::scene::neighbors::{Spacing, bounds, particle_spacing};
 
 /// Largest automatic grid (nodes, including the simulator's 3-cell margin): about 230 MB of
 /// node buffers.

@@ -4,6 +4,11 @@
 //! visual hull), sampled uniformly to the requested count, coloured by the per-channel median
 //! of the pixels it projects to. Scales start isotropic at half the mean point spacing
 //! ((V/N)^(1/3) / 2), rotations at identity, opacities at 0.1 (3DGS's initial value).
+//!
+//! Other sources: a point-cloud or 3DGS PLY, or a COLMAP sparse model (`.bin` or `.txt`), in
+//! the scene's world frame (metres). Their points are used as they are (a seeded random subset
+//! when there are more than `points`), coloured from the file (grey when it has no colours),
+//! with isotropic scales at the distance to the nearest other point, as 3DGS initialises.
 
 use std::path::PathBuf;
 
@@ -15,7 +20,10 @@ use serde_json::{Value, json};
 
 use crate::io::image;
 use crate::pipeline::spec::Preset;
-use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
+use crate::pipeline::spec::SceneSpec;
+use crate::pipeline::stage::{
+    InputFile, MetricRow, ParamError, StageContext, StageError, TypedStage,
+};
 use crate::scene::camera::Camera;
 use crate::scene::frames::{Frames, Role};
 use crate::scene::gaussians::{Gaussians, sh_coeffs};
@@ -31,6 +39,11 @@ pub const SH_C0: f32 = 0.282_094_8;
 pub enum InitSource {
     /// Space carving of the masks (needs no other input).
     VisualHull,
+    /// A point-cloud or 3DGS PLY named by `path`.
+    Ply,
+    /// A COLMAP sparse model folder (`cameras`, `images`, `points3D` as .bin or .txt) named by
+    /// `path`.
+    Colmap,
 }
 
 /// Parameters of `init`.
@@ -40,6 +53,10 @@ pub struct InitParams {
     /// Where the points come from.
     #[serde(default = "default_source")]
     pub source: InitSource,
+    /// The PLY file or COLMAP folder for `source: ply | colmap`; relative paths are relative to
+    /// the scene folder.
+    #[serde(default)]
+    pub path: Option<PathBuf>,
     /// Number of Gaussians to create.
     #[serde(default = "default_points")]
     pub points: u32,
@@ -103,7 +120,7 @@ pub struct Init;
 impl TypedStage for Init {
     type Params = InitParams;
     const KIND: &'static str = "init";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
     const DESCRIPTION: &'static str = "Initial Gaussians of the object: visual hull of one frame's masks, sampled and coloured from the images";
     const UPSTREAM: &'static [&'static str] = &["ingest"];
 
@@ -138,10 +155,64 @@ impl TypedStage for Init {
         if !(8..=1024).contains(&p.grid) {
             return bad("grid", format!("must be in 8..=1024, found {}", p.grid));
         }
-        Ok(())
+        match (p.source, &p.path) {
+            (InitSource::VisualHull, Some(_)) => bad(
+                "path",
+                "is only used with `source: ply` or `source: colmap`".into(),
+            ),
+            (InitSource::Ply | InitSource::Colmap, None) => bad(
+                "path",
+                "is required with `source: ply` or `source: colmap`".into(),
+            ),
+            _ => Ok(()),
+        }
+    }
+
+    fn inputs(&self, p: &InitParams, scene: &SceneSpec) -> Result<Vec<InputFile>, StageError> {
+        let Some(path) = p.path.as_ref() else {
+            return Ok(Vec::new());
+        };
+        let full = scene.path.join(path);
+        let missing = |what: String| StageError::failed(InitError::Invalid(what));
+        match p.source {
+            InitSource::VisualHull => Ok(Vec::new()),
+            InitSource::Ply => {
+                if !full.is_file() {
+                    return Err(missing(format!(
+                        "stages.init.path: {} is not a file",
+                        full.display()
+                    )));
+                }
+                Ok(vec![InputFile {
+                    logical_name: "points.ply".into(),
+                    path: full,
+                }])
+            }
+            InitSource::Colmap => {
+                let files: Vec<InputFile> = ["cameras", "images", "points3D"]
+                    .iter()
+                    .flat_map(|stem| ["bin", "txt"].map(|ext| format!("{stem}.{ext}")))
+                    .filter(|name| full.join(name).is_file())
+                    .map(|name| InputFile {
+                        path: full.join(&name),
+                        logical_name: format!("colmap/{name}"),
+                    })
+                    .collect();
+                if files.is_empty() {
+                    return Err(missing(format!(
+                        "stages.init.path: {} holds no COLMAP model (cameras/images/points3D .bin or .txt)",
+                        full.display()
+                    )));
+                }
+                Ok(files)
+            }
+        }
     }
 
     fn run(&self, p: &InitParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
+        if p.source != InitSource::VisualHull {
+            return from_points(p, ctx);
+        }
         let ingest = ctx.upstream("ingest")?.dir.clone();
         let frames: Frames =
             table::read(&ingest.join("frames.arrow")).map_err(StageError::failed)?;
@@ -250,6 +321,91 @@ impl TypedStage for Init {
         }
         Ok(())
     }
+}
+
+/// Gaussians from a PLY or COLMAP point set.
+fn from_points(p: &InitParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
+    let path = ctx.scene.path.join(p.path.as_ref().expect("validated"));
+    let (positions, colours): (Vec<[f32; 3]>, Option<Vec<[f32; 3]>>) = match p.source {
+        InitSource::Ply => {
+            let pc = crate::io::ply::read_points(&path).map_err(StageError::failed)?;
+            (pc.positions, pc.colors)
+        }
+        InitSource::Colmap => {
+            let m = crate::io::colmap::read_model(&path).map_err(StageError::failed)?;
+            (
+                m.points.iter().map(|q| q.xyz.map(|v| v as f32)).collect(),
+                Some(
+                    m.points
+                        .iter()
+                        .map(|q| q.rgb.map(|c| f32::from(c) / 255.0))
+                        .collect(),
+                ),
+            )
+        }
+        InitSource::VisualHull => unreachable!("handled by the caller"),
+    };
+    if positions.is_empty() {
+        return Err(StageError::failed(InitError::Invalid(format!(
+            "{}: holds no points",
+            path.display()
+        ))));
+    }
+    let mut order: Vec<usize> = (0..positions.len()).collect();
+    if order.len() > p.points as usize {
+        let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(p.seed);
+        rand::seq::SliceRandom::shuffle(order.as_mut_slice(), &mut rng);
+        order.truncate(p.points as usize);
+        order.sort_unstable();
+    }
+    let pts: Vec<DVec3> = order
+        .iter()
+        .map(|&i| DVec3::from(positions[i].map(f64::from)))
+        .collect();
+    let bounds = crate::scene::neighbors::bounds(&pts).expect("non-empty");
+    let extent = (bounds.1 - bounds.0).max_element().max(1e-6);
+    let grid =
+        crate::scene::neighbors::PointGrid::new(&pts, extent / (pts.len() as f64).cbrt().max(1.0));
+    let n = pts.len();
+    let k = sh_coeffs(p.sh_degree);
+    let mut sh = vec![0.0f32; n * k * 3];
+    let mut log_scale = Vec::with_capacity(n);
+    for (j, &i) in order.iter().enumerate() {
+        let rgb = colours.as_ref().map_or([0.5; 3], |c| c[i]);
+        for c in 0..3 {
+            sh[j * k * 3 + c] = (rgb[c] - 0.5) / SH_C0;
+        }
+        let d = grid
+            .nearest(pts[j], Some(j))
+            .map_or(extent * 0.01, |(_, d)| d)
+            .max(1e-7);
+        log_scale.push([(d as f32).ln(); 3]);
+    }
+    let opacity_logit = (p.opacity / (1.0 - p.opacity)).ln();
+    let g = Gaussians {
+        sh_degree: p.sh_degree,
+        id: (0..n as u32).collect(),
+        position: pts.iter().map(|x| x.as_vec3().to_array()).collect(),
+        log_scale,
+        rotation: vec![[1.0, 0.0, 0.0, 0.0]; n],
+        opacity_logit: vec![opacity_logit; n],
+        sh,
+        simulated: vec![true; n],
+    };
+    table::write(&ctx.out_dir.join("gaussians.arrow"), &g).map_err(StageError::failed)?;
+    ctx.progress.log(&format!(
+        "{n} Gaussians from {} ({} points in the file)",
+        path.display(),
+        positions.len()
+    ));
+    ctx.metric(MetricRow {
+        epoch: None,
+        view: None,
+        frame: None,
+        metric: "gaussians".into(),
+        value: n as f64,
+    });
+    Ok(())
 }
 
 /// Per-channel median colour (in [0, 1]) of the pixels `x` projects to inside the masks.

@@ -143,3 +143,89 @@ fn visual_hull_init_contains_the_object_and_renders_its_silhouette() {
         "silhouette IoU of the initial Gaussians {iou:.3}"
     );
 }
+
+fn run_init(init: &str) -> Result<Gaussians, String> {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("p.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "name: t\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: [10]\nstages:\n  ingest: {{frames: [0]}}\n  init: {init}\n",
+            fixture().display()
+        ),
+    )
+    .unwrap();
+    let reg = pipe::stages::builtin();
+    let ws = Workspace::new(dir.path());
+    let p = spec::load(&file, &reg, &Overrides::default()).map_err(|e| e.to_string())?;
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    ws.run(
+        &p,
+        &reg,
+        &RunOptions::default(),
+        &Reporter::new(Mode::Quiet),
+        &stop,
+        "test",
+    )
+    .map_err(|e| e.to_string())?;
+    let entry = ws.cached_entry(&p, &reg, "init").unwrap();
+    Ok(table::read(&entry.join("gaussians.arrow")).unwrap())
+}
+
+#[test]
+fn init_from_a_ply_subsamples_and_sizes_by_the_nearest_neighbour() {
+    let g =
+        run_init("{source: ply, path: gt/particles/0.ply, points: 2000, sh_degree: 0}").unwrap();
+    assert_eq!(g.len(), 2000);
+    let gt = ply::read_points(&fixture().join("gt/particles/0.ply")).unwrap();
+    // Every Gaussian is one of the file's points.
+    let set: std::collections::HashSet<[u32; 3]> =
+        gt.positions.iter().map(|p| p.map(f32::to_bits)).collect();
+    assert!(
+        g.position
+            .iter()
+            .all(|p| set.contains(&p.map(f32::to_bits)))
+    );
+    // 2000 of 14137 points in ~14 L: neighbours ~1–3 cm apart.
+    let s: Vec<f32> = g.log_scale.iter().map(|l| l[0].exp()).collect();
+    let mean = s.iter().sum::<f32>() / s.len() as f32;
+    assert!(mean > 0.004 && mean < 0.03, "mean scale {mean}");
+    // The file has no colours: grey, i.e. SH DC 0.
+    assert!(g.sh.iter().all(|v| *v == 0.0));
+}
+
+#[test]
+fn init_from_colmap_keeps_every_point_and_its_colour() {
+    let colmap =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/formats/colmap/sparse/0");
+    let g = run_init(&format!(
+        "{{source: colmap, path: {}, sh_degree: 0}}",
+        colmap.display()
+    ))
+    .unwrap();
+    assert_eq!(g.len(), 50);
+    let m = pipe::io::colmap::read_model(&colmap).unwrap();
+    for (i, pt) in m.points.iter().enumerate() {
+        assert_eq!(g.position[i], pt.xyz.map(|v| v as f32));
+        let rgb = g.sh[i * 3..i * 3 + 3]
+            .iter()
+            .map(|d| d * 0.282_094_8 + 0.5)
+            .collect::<Vec<f32>>();
+        for c in 0..3 {
+            assert!((rgb[c] - f32::from(pt.rgb[c]) / 255.0).abs() < 1e-5);
+        }
+    }
+}
+
+#[test]
+fn init_source_and_path_must_agree() {
+    let e = run_init("{source: ply}").unwrap_err();
+    assert!(
+        e.contains("stages.init.path: is required with `source: ply`"),
+        "{e}"
+    );
+    let e = run_init("{path: x.ply}").unwrap_err();
+    assert!(e.contains("stages.init.path: is only used with"), "{e}");
+    let e = run_init("{source: ply, path: nope.ply}").unwrap_err();
+    assert!(e.contains("nope.ply is not a file"), "{e}");
+}

@@ -17,8 +17,8 @@ use std::sync::Mutex;
 use glam::DVec3;
 use pipe::io::ply;
 use pipe::pipeline::progress::{Mode, Progress, Reporter};
+use pipe::scene::neighbors::mean_chamfer;
 use pipe::scene::table;
-use pipe::simulate::neighbors::mean_chamfer;
 use pipe::simulate::{self, SimulateError, Summary, Trajectories};
 
 const FRAME_DT: f64 = 0.041666666666666664;

@@ -35,7 +35,15 @@ fn run(dir: &Path, file: &Path) -> PathBuf {
     let ws = Workspace::new(dir);
     let p = spec::load(file, &reg, &Overrides::default()).unwrap();
     let stop = std::sync::atomic::AtomicBool::new(false);
-    ws.run(&p, &reg, &RunOptions::default(), &Reporter::new(Mode::Quiet), &stop, "test").unwrap();
+    ws.run(
+        &p,
+        &reg,
+        &RunOptions::default(),
+        &Reporter::new(Mode::Quiet),
+        &stop,
+        "test",
+    )
+    .unwrap();
     ws.cached_entry(&p, &reg, "warmup").unwrap()
 }
 
@@ -47,10 +55,26 @@ fn draft_warmup_fits_frame_zero_and_generalises_to_the_held_out_view() {
     assert!(g.len() > 1000, "{} Gaussians", g.len());
     assert!(g.position.iter().flatten().all(|v| v.is_finite()));
     let m: Metrics = table::read(&entry.join("metrics.arrow")).unwrap();
-    let value = |name: &str| m.rows.iter().find(|r| r.metric == name).unwrap_or_else(|| panic!("{name}")).value;
-    let losses: Vec<f64> = m.rows.iter().filter(|r| r.metric == "loss").map(|r| r.value).collect();
+    let value = |name: &str| {
+        m.rows
+            .iter()
+            .find(|r| r.metric == name)
+            .unwrap_or_else(|| panic!("{name}"))
+            .value
+    };
+    let losses: Vec<f64> = m
+        .rows
+        .iter()
+        .filter(|r| r.metric == "loss")
+        .map(|r| r.value)
+        .collect();
     assert_eq!(losses.len(), 100, "one loss per draft epoch");
-    assert!(losses[0] > 2.0 * losses[99], "loss {} → {}", losses[0], losses[99]);
+    assert!(
+        losses[0] > 2.0 * losses[99],
+        "loss {} → {}",
+        losses[0],
+        losses[99]
+    );
     let test_psnr = value("test_psnr_mean");
     let train_psnr = value("train_psnr_mean");
     // Measured 29.2–29.3 dB for camera 10 (the issue asks for 30; see the issue note).
@@ -70,7 +94,10 @@ fn warmup_is_bit_identical_with_one_and_two_threads() {
         .map(|&threads| {
             let dir = tempfile::tempdir().unwrap();
             let file = pipeline(dir.path(), "epochs: 8, densify_every: 20");
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
             let entry = pool.install(|| run(dir.path(), &file));
             let bytes = std::fs::read(entry.join("gaussians.arrow")).unwrap();
             blake3::hash(&bytes).to_hex().to_string()
@@ -83,6 +110,43 @@ fn warmup_is_bit_identical_with_one_and_two_threads() {
 fn bad_warmup_parameters_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let file = pipeline(dir.path(), "lambda: 1.5");
-    let e = spec::load(&file, &pipe::stages::builtin(), &Overrides::default()).unwrap_err().to_string();
-    assert!(e.contains("stages.warmup.lambda: must be in [0, 1], found 1.5"), "{e}");
+    let e = spec::load(&file, &pipe::stages::builtin(), &Overrides::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("stages.warmup.lambda: must be in [0, 1], found 1.5"),
+        "{e}"
+    );
+}
+
+#[test]
+fn a_diverging_run_stops_and_says_where() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = pipeline(dir.path(), "epochs: 3, lr_scale: 1.0e30");
+    let reg = pipe::stages::builtin();
+    let p = spec::load(&file, &reg, &Overrides::default()).unwrap();
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    let e = Workspace::new(dir.path())
+        .run(
+            &p,
+            &reg,
+            &RunOptions::default(),
+            &Reporter::new(Mode::Quiet),
+            &stop,
+            "test",
+        )
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("stage `warmup` failed: non-finite"), "{e}");
+    assert!(e.contains("at epoch 0, iteration "), "{e}");
+    assert!(e.contains("lower stages.warmup."), "{e}");
+    // Nothing was committed for the failed stage.
+    assert!(
+        Workspace::new(dir.path())
+            .store
+            .entries()
+            .unwrap()
+            .iter()
+            .all(|e| !e.starts_with("warmup-"))
+    );
 }

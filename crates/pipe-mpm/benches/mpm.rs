@@ -50,7 +50,13 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 /// Forward (checkpointed tape, `every` substeps per checkpoint) and backward, timed apart.
-fn ad_case<M: Constitutive + Clone>(name: &str, model: M, steps: usize, every: usize, threads: usize) {
+fn ad_case<M: Constitutive + Clone>(
+    name: &str,
+    model: M,
+    steps: usize,
+    every: usize,
+    threads: usize,
+) {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
@@ -132,7 +138,9 @@ fn rollout(mode: &str) {
             sim.run(&mut s, &mat, 0.0, frames * spf).unwrap();
         }
         "tape" | "tape+bwd" => {
-            let tape = sim.forward_tape(&mut s, &mat, 0.0, frames * spf, spf).unwrap();
+            let tape = sim
+                .forward_tape(&mut s, &mat, 0.0, frames * spf, spf)
+                .unwrap();
             if mode == "tape+bwd" {
                 let mut seed = StateGrad::zeros(n);
                 seed.x.iter_mut().for_each(|g| g.y = 1.0 / n as f64);

@@ -501,7 +501,9 @@ impl TypedStage for Warmup {
                     density::densify(&mut g, &mut states, &stats, &dcfg, &mut rng);
                     stats = DensityStats::new(g.len());
                 }
-                if p.opacity_reset_every > 0 && t.is_multiple_of(p.opacity_reset_every) && t < densify_until
+                if p.opacity_reset_every > 0
+                    && t.is_multiple_of(p.opacity_reset_every)
+                    && t < densify_until
                 {
                     density::reset_opacity(&mut g, &mut states, 0.01);
                 }
