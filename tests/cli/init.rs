@@ -211,8 +211,8 @@ fn init_from_colmap_keeps_every_point_and_its_colour() {
             .iter()
             .map(|d| d * 0.282_094_8 + 0.5)
             .collect::<Vec<f32>>();
-        for c in 0..3 {
-            assert!((rgb[c] - f32::from(pt.rgb[c]) / 255.0).abs() < 1e-5);
+        for (got, want) in rgb.iter().zip(pt.rgb) {
+            assert!((got - f32::from(want) / 255.0).abs() < 1e-5);
         }
     }
 }
