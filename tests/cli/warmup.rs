@@ -77,8 +77,9 @@ fn draft_warmup_fits_frame_zero_and_generalises_to_the_held_out_view() {
     );
     let test_psnr = value("test_psnr_mean");
     let train_psnr = value("train_psnr_mean");
-    // Measured 29.2–29.3 dB for camera 10 (the issue asks for 30; see the issue note).
-    assert!(test_psnr >= 28.5, "held-out PSNR {test_psnr:.2} dB");
+    // Measured 29.6 dB for camera 10 (29.45–29.66 over seeds and loss weights; the issue asks
+    // for 30, which 10 training views at 100×100 do not reach here: see the issue note).
+    assert!(test_psnr >= 29.0, "held-out PSNR {test_psnr:.2} dB");
     assert!(train_psnr >= 33.0, "train PSNR {train_psnr:.2} dB");
     assert!(value("test_ssim_mean") > 0.975);
     let render = image::open(entry.join("renders/test_v10_f0.png")).unwrap();

@@ -9,8 +9,8 @@ pub mod density;
 
 use std::path::Path;
 
-use rand::SeedableRng;
 use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
 use schemas::WarmupParams;
 use serde_json::{Value, json};
 
@@ -83,9 +83,17 @@ pub mod schemas {
         /// mask and absent outside); 0 disables it.
         #[serde(default = "alpha_weight")]
         pub alpha_weight: f64,
+        /// Train against a random background colour each iteration (the object composited on
+        /// it through its mask) so that no Gaussian can stand in for the background.
+        #[serde(default = "random_background")]
+        pub random_background: bool,
         /// Seed of the view order and of splits.
         #[serde(default)]
         pub seed: u64,
+    }
+
+    fn random_background() -> bool {
+        true
     }
 
     fn alpha_weight() -> f64 {
@@ -353,16 +361,36 @@ impl TypedStage for Warmup {
                     })
                 };
                 let rg = splat::render_gaussians(&g);
-                let out = pipe_render::render(&rg, &target.camera, &opts).map_err(|source| {
-                    StageError::failed(WarmupError::Render {
-                        view,
-                        frame,
-                        source,
-                    })
-                })?;
+                let (iter_opts, recomposited) = if p.random_background {
+                    let bg: [f32; 3] = [rng.random(), rng.random(), rng.random()];
+                    let pixels = target
+                        .pixels
+                        .chunks_exact(3)
+                        .zip(&target.mask)
+                        .flat_map(|(px, m)| [0, 1, 2].map(|c| m * px[c] + (1.0 - m) * bg[c]))
+                        .collect::<Vec<f32>>();
+                    (
+                        pipe_render::RenderOptions {
+                            background: bg,
+                            ..opts
+                        },
+                        Some(pixels),
+                    )
+                } else {
+                    (opts, None)
+                };
+                let target_pixels = recomposited.as_deref().unwrap_or(&target.pixels);
+                let out =
+                    pipe_render::render(&rg, &target.camera, &iter_opts).map_err(|source| {
+                        StageError::failed(WarmupError::Render {
+                            view,
+                            frame,
+                            source,
+                        })
+                    })?;
                 let rendered = pipe_loss::Image::from_rgb("render", &out.image, w, h)
                     .map_err(StageError::failed)?;
-                let gt = pipe_loss::Image::new("target", &target.pixels, w, h)
+                let gt = pipe_loss::Image::new("target", target_pixels, w, h)
                     .map_err(StageError::failed)?;
                 let (mut loss, d_image) =
                     pipe_loss::l1_dssim(rendered, gt, p.lambda).map_err(StageError::failed)?;
@@ -393,7 +421,7 @@ impl TypedStage for Warmup {
                 let grads = pipe_render::backward(
                     &rg,
                     &target.camera,
-                    &opts,
+                    &iter_opts,
                     &out,
                     d_image,
                     d_alpha.as_deref(),
