@@ -6,49 +6,22 @@
 //! a plain colour difference mistakes for object). Then each kind of broken capture must give
 //! an error naming the file and value.
 
+use crate::support::{BuiltinRun, fixture_scene};
 use std::path::{Path, PathBuf};
 
-use pipe::pipeline::progress::{Mode, Reporter};
-use pipe::pipeline::runner::{RunError, RunOptions, Workspace};
-use pipe::pipeline::spec::{self, Overrides};
 use pipe::scene::frames::{Frames, Role};
 use pipe::scene::metrics::Metrics;
 use pipe::scene::table;
 
 fn fixture() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/torus-elastic-small")
+    fixture_scene()
 }
 
-/// Run `ingest` on `scene` in a fresh work dir; returns (work dir, entry dir) or the error.
-fn ingest(scene: &Path, test_views: &str) -> (tempfile::TempDir, Result<PathBuf, RunError>) {
-    let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("p.yaml");
-    std::fs::write(
-        &file,
-        format!(
-            "name: t\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: {test_views}\nstages:\n  ingest: {{}}\n",
-            scene.display()
-        ),
-    )
-    .unwrap();
-    let reg = pipe::stages::builtin();
-    let ws = Workspace::new(dir.path());
-    let stop = std::sync::atomic::AtomicBool::new(false);
-    let res = spec::load(&file, &reg, &Overrides::default())
-        .map_err(RunError::from)
-        .and_then(|p| {
-            ws.run(
-                &p,
-                &reg,
-                &RunOptions::default(),
-                &Reporter::new(Mode::Quiet),
-                &stop,
-                "test",
-            )?;
-            let (_, planned) = ws.plan(&p, &reg)?;
-            Ok(ws.store.entry_dir("ingest", &planned[0].key))
-        });
-    (dir, res)
+/// Run `ingest` on `scene` in a fresh work dir; returns the run (keeps the dir) and the entry.
+fn ingest(scene: &Path, test_views: &str) -> (BuiltinRun, Result<PathBuf, String>) {
+    let run = BuiltinRun::new(scene, test_views, "standard", "  ingest: {}\n");
+    let res = run.run().map(|_| run.entry("ingest"));
+    (run, res)
 }
 
 fn gray(path: &Path) -> Vec<u8> {
@@ -186,7 +159,7 @@ fn small_copy() -> tempfile::TempDir {
 
 fn ingest_err(scene: &Path) -> String {
     let (_d, r) = ingest(scene, "[1]");
-    r.expect_err("should fail").to_string()
+    r.expect_err("should fail")
 }
 
 fn edit_json(dir: &Path, f: impl FnOnce(&mut Vec<serde_json::Value>)) {
@@ -295,7 +268,7 @@ fn four_by_four_poses_are_accepted() {
 fn unknown_test_view_is_refused() {
     let d = small_copy();
     let (_w, r) = ingest(d.path(), "[10]");
-    let e = r.unwrap_err().to_string();
+    let e = r.unwrap_err();
     assert!(
         e.contains("scene.test_views: camera 10 is not in") && e.contains("cameras: 0, 1"),
         "{e}"

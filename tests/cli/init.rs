@@ -3,46 +3,29 @@
 //! ground-truth particles of frame 0 (gt/particles/0.ply, PAC-NeRF's simulator state) and not be
 //! much larger than the object, and the rendered silhouette must overlap the ground-truth mask.
 
+use crate::support::{BuiltinRun, fixture_scene};
 use std::path::{Path, PathBuf};
 
 use pipe::io::ply;
-use pipe::pipeline::progress::{Mode, Reporter};
-use pipe::pipeline::runner::{RunOptions, Workspace};
-use pipe::pipeline::spec::{self, Overrides};
 use pipe::scene::gaussians::Gaussians;
 use pipe::scene::metrics::Metrics;
 use pipe::scene::table;
 
 fn fixture() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/torus-elastic-small")
+    fixture_scene()
 }
 
 #[test]
 fn visual_hull_init_contains_the_object_and_renders_its_silhouette() {
-    let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("p.yaml");
-    std::fs::write(
-        &file,
-        format!(
-            "name: t\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: [10]\npreset: draft\nstages:\n  ingest: {{}}\n  init: {{points: 4000, seed: 7}}\n",
-            fixture().display()
-        ),
-    )
-    .unwrap();
-    let reg = pipe::stages::builtin();
-    let ws = Workspace::new(dir.path());
-    let p = spec::load(&file, &reg, &Overrides::default()).unwrap();
-    let stop = std::sync::atomic::AtomicBool::new(false);
-    ws.run(
-        &p,
-        &reg,
-        &RunOptions::default(),
-        &Reporter::new(Mode::Quiet),
-        &stop,
-        "test",
-    )
-    .unwrap();
-    let entry = ws.cached_entry(&p, &reg, "init").unwrap();
+    let run = BuiltinRun::new(
+        &fixture(),
+        "[10]",
+        "draft",
+        "  ingest: {}\n  init: {points: 4000, seed: 7}\n",
+    );
+    run.run().unwrap();
+    let (dir, file, reg) = (&run.dir, &run.file, pipe::stages::builtin());
+    let entry = run.entry("init");
     let g: Gaussians = table::read(&entry.join("gaussians.arrow")).unwrap();
     assert_eq!(g.len(), 4000);
     assert_eq!(g.sh_degree, 1, "draft preset");
@@ -145,31 +128,14 @@ fn visual_hull_init_contains_the_object_and_renders_its_silhouette() {
 }
 
 fn run_init(init: &str) -> Result<Gaussians, String> {
-    let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("p.yaml");
-    std::fs::write(
-        &file,
-        format!(
-            "name: t\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: [10]\nstages:\n  ingest: {{frames: [0]}}\n  init: {init}\n",
-            fixture().display()
-        ),
-    )
-    .unwrap();
-    let reg = pipe::stages::builtin();
-    let ws = Workspace::new(dir.path());
-    let p = spec::load(&file, &reg, &Overrides::default()).map_err(|e| e.to_string())?;
-    let stop = std::sync::atomic::AtomicBool::new(false);
-    ws.run(
-        &p,
-        &reg,
-        &RunOptions::default(),
-        &Reporter::new(Mode::Quiet),
-        &stop,
-        "test",
-    )
-    .map_err(|e| e.to_string())?;
-    let entry = ws.cached_entry(&p, &reg, "init").unwrap();
-    Ok(table::read(&entry.join("gaussians.arrow")).unwrap())
+    let run = BuiltinRun::new(
+        &fixture(),
+        "[10]",
+        "standard",
+        &format!("  ingest: {{frames: [0]}}\n  init: {init}\n"),
+    );
+    run.run()?;
+    Ok(table::read(&run.entry("init").join("gaussians.arrow")).unwrap())
 }
 
 #[test]

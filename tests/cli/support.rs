@@ -238,3 +238,64 @@ fn child_main() {
         std::process::exit(i32::from(code));
     }
 }
+
+/// The repo's fixture scene (torus-elastic down-scaled 2×).
+pub fn fixture_scene() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/torus-elastic-small")
+}
+
+/// A temp work directory with a pipeline over a scene, run with the built-in stages.
+pub struct BuiltinRun {
+    /// Keeps the directory alive.
+    pub dir: tempfile::TempDir,
+    /// `p.yaml` inside it.
+    pub file: PathBuf,
+}
+
+impl BuiltinRun {
+    /// Write `p.yaml`: `scene` (PAC-NeRF), `test_views` (YAML list), `preset`, and the
+    /// `stages:` body (YAML lines indented by two spaces).
+    pub fn new(scene: &Path, test_views: &str, preset: &str, stages: &str) -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("p.yaml");
+        std::fs::write(
+            &file,
+            format!(
+                "name: t\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: {test_views}\npreset: {preset}\nstages:\n{stages}",
+                scene.display()
+            ),
+        )
+        .unwrap();
+        Self { dir, file }
+    }
+
+    /// The work directory.
+    pub fn ws(&self) -> Workspace {
+        Workspace::new(self.dir.path())
+    }
+
+    /// Load and run the pipeline; the error as the CLI would print it.
+    pub fn run(&self) -> Result<Pipeline, String> {
+        let reg = pipe::stages::builtin();
+        let p = spec::load(&self.file, &reg, &Overrides::default()).map_err(|e| e.to_string())?;
+        let stop = std::sync::atomic::AtomicBool::new(false);
+        self.ws()
+            .run(
+                &p,
+                &reg,
+                &RunOptions::default(),
+                &Reporter::new(Mode::Quiet),
+                &stop,
+                "test",
+            )
+            .map_err(|e| e.to_string())?;
+        Ok(p)
+    }
+
+    /// The committed entry of `stage` (after [`Self::run`]).
+    pub fn entry(&self, stage: &str) -> PathBuf {
+        let reg = pipe::stages::builtin();
+        let p = spec::load(&self.file, &reg, &Overrides::default()).unwrap();
+        self.ws().cached_entry(&p, &reg, stage).unwrap()
+    }
+}

@@ -4,53 +4,26 @@
 //! short run with 1 and with 2 threads must give bit-identical Gaussians (fixed-order
 //! reductions everywhere).
 
-use std::path::{Path, PathBuf};
+use crate::support::{BuiltinRun, fixture_scene};
 
-use pipe::pipeline::progress::{Mode, Reporter};
-use pipe::pipeline::runner::{RunOptions, Workspace};
-use pipe::pipeline::spec::{self, Overrides};
 use pipe::scene::gaussians::Gaussians;
 use pipe::scene::metrics::Metrics;
 use pipe::scene::table;
 
-fn fixture() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/torus-elastic-small")
-}
-
-fn pipeline(dir: &Path, warmup: &str) -> PathBuf {
-    let file = dir.join("p.yaml");
-    std::fs::write(
-        &file,
-        format!(
-            "name: t\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: [10]\npreset: draft\nstages:\n  ingest: {{frames: [0]}}\n  init: {{}}\n  warmup: {{{warmup}}}\n",
-            fixture().display()
-        ),
+fn draft(warmup: &str) -> BuiltinRun {
+    BuiltinRun::new(
+        &fixture_scene(),
+        "[10]",
+        "draft",
+        &format!("  ingest: {{frames: [0]}}\n  init: {{}}\n  warmup: {{{warmup}}}\n"),
     )
-    .unwrap();
-    file
-}
-
-fn run(dir: &Path, file: &Path) -> PathBuf {
-    let reg = pipe::stages::builtin();
-    let ws = Workspace::new(dir);
-    let p = spec::load(file, &reg, &Overrides::default()).unwrap();
-    let stop = std::sync::atomic::AtomicBool::new(false);
-    ws.run(
-        &p,
-        &reg,
-        &RunOptions::default(),
-        &Reporter::new(Mode::Quiet),
-        &stop,
-        "test",
-    )
-    .unwrap();
-    ws.cached_entry(&p, &reg, "warmup").unwrap()
 }
 
 #[test]
 fn draft_warmup_fits_frame_zero_and_generalises_to_the_held_out_view() {
-    let dir = tempfile::tempdir().unwrap();
-    let entry = run(dir.path(), &pipeline(dir.path(), ""));
+    let run = draft("");
+    run.run().unwrap();
+    let entry = run.entry("warmup");
     let g: Gaussians = table::read(&entry.join("gaussians.arrow")).unwrap();
     assert!(g.len() > 1000, "{} Gaussians", g.len());
     assert!(g.position.iter().flatten().all(|v| v.is_finite()));
@@ -93,13 +66,13 @@ fn warmup_is_bit_identical_with_one_and_two_threads() {
     let hashes: Vec<String> = [1usize, 2]
         .iter()
         .map(|&threads| {
-            let dir = tempfile::tempdir().unwrap();
-            let file = pipeline(dir.path(), "epochs: 8, densify_every: 20");
+            let run = draft("epochs: 8, densify_every: 20");
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
                 .build()
                 .unwrap();
-            let entry = pool.install(|| run(dir.path(), &file));
+            pool.install(|| run.run()).unwrap();
+            let entry = run.entry("warmup");
             let bytes = std::fs::read(entry.join("gaussians.arrow")).unwrap();
             blake3::hash(&bytes).to_hex().to_string()
         })
@@ -109,11 +82,7 @@ fn warmup_is_bit_identical_with_one_and_two_threads() {
 
 #[test]
 fn bad_warmup_parameters_are_refused() {
-    let dir = tempfile::tempdir().unwrap();
-    let file = pipeline(dir.path(), "lambda: 1.5");
-    let e = spec::load(&file, &pipe::stages::builtin(), &Overrides::default())
-        .unwrap_err()
-        .to_string();
+    let e = draft("lambda: 1.5").run().unwrap_err();
     assert!(
         e.contains("stages.warmup.lambda: must be in [0, 1], found 1.5"),
         "{e}"
@@ -122,28 +91,14 @@ fn bad_warmup_parameters_are_refused() {
 
 #[test]
 fn a_diverging_run_stops_and_says_where() {
-    let dir = tempfile::tempdir().unwrap();
-    let file = pipeline(dir.path(), "epochs: 3, lr_scale: 1.0e30");
-    let reg = pipe::stages::builtin();
-    let p = spec::load(&file, &reg, &Overrides::default()).unwrap();
-    let stop = std::sync::atomic::AtomicBool::new(false);
-    let e = Workspace::new(dir.path())
-        .run(
-            &p,
-            &reg,
-            &RunOptions::default(),
-            &Reporter::new(Mode::Quiet),
-            &stop,
-            "test",
-        )
-        .unwrap_err()
-        .to_string();
+    let run = draft("epochs: 3, lr_scale: 1.0e30");
+    let e = run.run().unwrap_err();
     assert!(e.contains("stage `warmup` failed: non-finite"), "{e}");
     assert!(e.contains("at epoch 0, iteration "), "{e}");
     assert!(e.contains("lower stages.warmup."), "{e}");
     // Nothing was committed for the failed stage.
     assert!(
-        Workspace::new(dir.path())
+        run.ws()
             .store
             .entries()
             .unwrap()
