@@ -289,52 +289,21 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
         } => {
             let p = load(pipeline, registry)?;
             let entry = ws.cached_entry(&p, registry, stage)?;
-            let fail = RunError::Output;
-            match format {
-                ExportFormat::Ply => {
-                    let src = entry.join("gaussians.arrow");
-                    if !src.exists() {
-                        return Err(fail(format!(
-                            "stage `{stage}` has no Gaussians to export ({} holds no gaussians.arrow)",
-                            entry.display()
-                        )));
-                    }
-                    let g: crate::scene::gaussians::Gaussians =
-                        crate::scene::table::read(&src).map_err(|e| fail(e.to_string()))?;
-                    let dst = out.clone().unwrap_or_else(|| {
-                        PathBuf::from(format!("exports/{}-{stage}.ply", p.name))
-                    });
-                    if let Some(dir) = dst.parent() {
-                        std::fs::create_dir_all(dir)
-                            .map_err(|e| fail(format!("{}: {e}", dir.display())))?;
-                    }
-                    crate::io::ply::write_gaussians(&dst, &g).map_err(|e| fail(e.to_string()))?;
-                    println!(
-                        "wrote {} Gaussians (SH degree {}) to {}",
-                        g.len(),
-                        g.sh_degree,
-                        dst.display()
-                    );
-                }
-                ExportFormat::Parquet => {
-                    let dir = out
-                        .clone()
-                        .unwrap_or_else(|| PathBuf::from(format!("exports/{}-{stage}", p.name)));
-                    let tables: Vec<String> = crate::pipeline::cache::list_files(&entry)
-                        .map_err(|e| fail(format!("{}: {e}", entry.display())))?
-                        .into_iter()
-                        .filter(|f| f.ends_with(".arrow"))
-                        .collect();
-                    if tables.is_empty() {
-                        return Err(fail(format!("stage `{stage}` wrote no tables")));
-                    }
-                    for t in tables {
-                        let dst = dir.join(t.replace(".arrow", ".parquet"));
-                        crate::io::parquet::arrow_to_parquet(&entry.join(&t), &dst)
-                            .map_err(|e| fail(e.to_string()))?;
-                        println!("wrote {}", dst.display());
-                    }
-                }
+            let (fmt, default) = match format {
+                ExportFormat::Ply => (
+                    crate::export::Format::Ply,
+                    format!("exports/{}-{stage}.ply", p.name),
+                ),
+                ExportFormat::Parquet => (
+                    crate::export::Format::Parquet,
+                    format!("exports/{}-{stage}", p.name),
+                ),
+            };
+            let out = out.clone().unwrap_or_else(|| PathBuf::from(default));
+            for (file, what) in crate::export::export(&entry, stage, fmt, &out)
+                .map_err(|e| RunError::Output(e.to_string()))?
+            {
+                println!("wrote {what} to {}", file.display());
             }
             Ok(())
         }

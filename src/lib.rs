@@ -6,6 +6,7 @@
 //! kernels live in the `pipe-*` member crates.
 
 pub mod cli;
+pub mod export;
 pub mod io;
 pub mod pipeline;
 pub mod preview;
