@@ -37,3 +37,24 @@ pub fn write_depth(path: &Path, width: u32, height: u32, depth: &[f32]) -> Resul
         .map_err(|e| err(e.to_string()))?;
     std::fs::rename(&tmp, path).map_err(|e| err(e.to_string()))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn depth_round_trips_through_a_z_channel() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("d.exr");
+        let depth: Vec<f32> = (0..12).map(|i| i as f32 * 0.25).collect();
+        write_depth(&path, 4, 3, &depth).unwrap();
+        let img = exr::prelude::read_first_flat_layer_from_file(&path).unwrap();
+        let layer = &img.layer_data;
+        assert_eq!((layer.size.0, layer.size.1), (4, 3));
+        let ch = &layer.channel_data.list[0];
+        assert_eq!(ch.name.to_string(), "Z");
+        let values: Vec<f32> = ch.sample_data.values_as_f32().collect();
+        assert_eq!(values, depth);
+        assert!(write_depth(&path, 5, 3, &depth).is_err());
+    }
+}
