@@ -256,12 +256,16 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
             let width = planned.iter().map(|s| s.name.len()).max().unwrap_or(0);
             for s in &planned {
                 let line = match &s.state {
-                    StageState::Cached(m) => format!(
-                        "cached   {}  ran in {:.2} s, {}",
-                        short(&s.key),
-                        m.wall_s,
-                        display_dir(&ws.store.entry_dir(&s.name, &s.key))
-                    ),
+                    StageState::Cached(m) => {
+                        let dir = ws.store.entry_dir(&s.name, &s.key);
+                        format!(
+                            "cached   {}  ran in {:.2} s{}, {}",
+                            short(&s.key),
+                            m.wall_s,
+                            headline_metrics(&dir),
+                            display_dir(&dir)
+                        )
+                    }
                     StageState::Stale(reasons) => format!("stale    {}", reasons.join("; ")),
                     StageState::NotRun => "not run".to_string(),
                 };
@@ -367,6 +371,43 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
             );
             Ok(())
         }
+    }
+}
+
+/// The stage's summary metrics (rows for no particular epoch or view), e.g. `; test_psnr_mean 29.6`.
+fn headline_metrics(entry: &Path) -> String {
+    let Ok(m) =
+        crate::scene::table::read::<crate::scene::metrics::Metrics>(&entry.join("metrics.arrow"))
+    else {
+        return String::new();
+    };
+    let rows: Vec<String> = m
+        .rows
+        .iter()
+        .filter(|r| r.epoch.is_none() && r.view.is_none())
+        .take(4)
+        .map(|r| format!("{} {}", r.metric, short_number(r.value)))
+        .collect();
+    if rows.is_empty() {
+        String::new()
+    } else {
+        format!("; {}", rows.join(", "))
+    }
+}
+
+/// A number with about four significant digits (integers as integers).
+fn short_number(v: f64) -> String {
+    let a = v.abs();
+    if v.fract() == 0.0 && a < 1e12 {
+        format!("{v:.0}")
+    } else if a >= 100.0 {
+        format!("{v:.1}")
+    } else if a >= 1.0 {
+        format!("{v:.2}")
+    } else if a >= 1e-3 {
+        format!("{v:.4}")
+    } else {
+        format!("{v:.3e}")
     }
 }
 
