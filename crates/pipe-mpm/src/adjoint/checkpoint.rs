@@ -1,8 +1,9 @@
 //! Checkpointed backpropagation over many substeps.
 //!
 //! The forward pass keeps the state every `every` substeps (a frame boundary); the backward pass
-//! recomputes the states inside one segment at a time, so memory is
-//! O((n/every + every) · particles), never O(substeps · particles).
+//! recomputes one segment at a time in two levels (sub-checkpoints every ⌈√every⌉ substeps,
+//! then the states of one sub-segment), so memory is O((n/every + 2√every) · particles), never
+//! O(substeps · particles), for about one extra forward pass.
 
 use super::AdjointWork;
 use crate::error::MpmError;
@@ -132,44 +133,68 @@ impl<M: Constitutive> Simulator<M> {
             if hi <= start {
                 break;
             }
-            // Recompute the states of this segment.
-            let mut states = Vec::with_capacity(hi - lo);
-            states.push(ck.clone());
-            for k in lo..hi - 1 {
-                let mut next = ck.clone();
-                self.forward(
-                    &states[k - lo],
-                    mat,
-                    tape.t0 + k as f64 * dt,
-                    &mut next,
-                    &mut w,
-                );
-                states.push(next);
-            }
-            for k in (lo.max(start)..hi).rev() {
-                let s = &states[k - lo];
-                g = self.substep_backward_with(
-                    s,
-                    mat,
-                    tape.t0 + k as f64 * dt,
-                    &g,
-                    &mut gmat,
-                    &mut aw,
-                );
-                if let Some((quantity, particle)) = g.first_non_finite() {
-                    return Err(MpmError::NonFinite {
-                        substep: k,
-                        quantity,
-                        particle,
-                    });
+            // Two-level recomputation: first the sub-checkpoints of this segment every
+            // `sub` substeps, then the states of one sub-segment at a time, so at most
+            // about 2·√every states are alive besides the tape (not `every` of them).
+            let sub = ((hi - lo) as f64).sqrt().ceil().max(1.0) as usize;
+            let mut subs = Vec::with_capacity((hi - lo).div_ceil(sub));
+            let last_sub = lo + (hi - 1 - lo) / sub * sub;
+            let mut cur = ck.clone();
+            let mut next = ck.clone();
+            for k in lo..=last_sub {
+                if (k - lo) % sub == 0 {
+                    subs.push(cur.clone());
                 }
-                if let Some(extra) = seed(k, s) {
-                    if extra.len() != np {
-                        return Err(MpmError::GradientMismatch(
-                            "seed gradient length differs from the particle count",
-                        ));
+                if k < last_sub {
+                    self.forward(&cur, mat, tape.t0 + k as f64 * dt, &mut next, &mut w);
+                    std::mem::swap(&mut cur, &mut next);
+                }
+            }
+            drop((cur, next));
+            for (i, sc) in subs.iter().enumerate().rev() {
+                let a = lo + i * sub;
+                let b = (a + sub).min(hi);
+                if b <= start {
+                    break;
+                }
+                let mut states = Vec::with_capacity(b - a);
+                states.push(sc.clone());
+                for k in a..b - 1 {
+                    let mut next = sc.clone();
+                    self.forward(
+                        &states[k - a],
+                        mat,
+                        tape.t0 + k as f64 * dt,
+                        &mut next,
+                        &mut w,
+                    );
+                    states.push(next);
+                }
+                for k in (a.max(start)..b).rev() {
+                    let s = &states[k - a];
+                    g = self.substep_backward_with(
+                        s,
+                        mat,
+                        tape.t0 + k as f64 * dt,
+                        &g,
+                        &mut gmat,
+                        &mut aw,
+                    );
+                    if let Some((quantity, particle)) = g.first_non_finite() {
+                        return Err(MpmError::NonFinite {
+                            substep: k,
+                            quantity,
+                            particle,
+                        });
                     }
-                    g.add_assign(&extra);
+                    if let Some(extra) = seed(k, s) {
+                        if extra.len() != np {
+                            return Err(MpmError::GradientMismatch(
+                                "seed gradient length differs from the particle count",
+                            ));
+                        }
+                        g.add_assign(&extra);
+                    }
                 }
             }
         }
