@@ -142,7 +142,7 @@ impl<M: Constitutive> Simulator<M> {
             let mut cur = ck.clone();
             let mut next = ck.clone();
             for k in lo..=last_sub {
-                if (k - lo) % sub == 0 {
+                if (k - lo).is_multiple_of(sub) {
                     subs.push(cur.clone());
                 }
                 if k < last_sub {
