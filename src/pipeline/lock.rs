@@ -53,7 +53,17 @@ impl WorkdirLock {
             .truncate(false)
             .open(&path)
             .map_err(io)?;
-        match file.try_lock() {
+        // A holder that is just finishing (or a forked child that has not yet exec'd and still
+        // shares the descriptor) releases the lock within moments: retry briefly first.
+        let mut attempt = file.try_lock();
+        let deadline = std::time::Instant::now() + std::time::Duration::from_millis(500);
+        while matches!(attempt, Err(fs::TryLockError::WouldBlock))
+            && std::time::Instant::now() < deadline
+        {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+            attempt = file.try_lock();
+        }
+        match attempt {
             Ok(()) => {}
             Err(fs::TryLockError::WouldBlock) => {
                 let holder = fs::read_to_string(&path)
