@@ -245,6 +245,19 @@ impl<M: Constitutive> Simulator<M> {
         t0: f64,
         n_substeps: usize,
     ) -> Result<RunReport, MpmError> {
+        self.advance(state, mat, t0, n_substeps, |_, _| {})
+    }
+
+    /// The substep loop shared by [`Self::run`] and [`Self::forward_tape`]: `before(k, state_k)`
+    /// sees the state at the start of every substep `k`.
+    pub(crate) fn advance(
+        &self,
+        state: &mut State,
+        mat: &Material,
+        t0: f64,
+        n_substeps: usize,
+        mut before: impl FnMut(usize, &State),
+    ) -> Result<RunReport, MpmError> {
         self.validate(state, mat)?;
         let mut rep = RunReport::default();
         let h = self.hold_all(state);
@@ -253,6 +266,7 @@ impl<M: Constitutive> Simulator<M> {
         let mut w = Work::default();
         let mut next = state.clone();
         for k in 0..n_substeps {
+            before(k, state);
             let held = self.forward(
                 state,
                 mat,

@@ -63,37 +63,12 @@ impl<M: Constitutive> Simulator<M> {
                 reason: "must be >= 1",
             });
         }
-        self.validate(state, mat)?;
-        let mut report = RunReport::default();
-        let h = self.hold_all(state);
-        report.held = h;
-        report.max_held = h;
         let mut checkpoints = Vec::with_capacity(n_substeps.div_ceil(every));
-        let mut w = Work::default();
-        let mut next = state.clone();
-        for k in 0..n_substeps {
-            if k % every == 0 {
-                checkpoints.push(state.clone());
+        let report = self.advance(state, mat, t0, n_substeps, |k, s| {
+            if k.is_multiple_of(every) {
+                checkpoints.push(s.clone());
             }
-            let held = self.forward(
-                state,
-                mat,
-                t0 + k as f64 * self.config.dt,
-                &mut next,
-                &mut w,
-            );
-            std::mem::swap(state, &mut next);
-            if let Some((quantity, particle)) = state.first_non_finite() {
-                return Err(MpmError::NonFinite {
-                    substep: k,
-                    quantity,
-                    particle,
-                });
-            }
-            report.substeps += 1;
-            report.held += held;
-            report.max_held = report.max_held.max(held);
-        }
+        })?;
         Ok(Tape {
             t0,
             n_substeps,
