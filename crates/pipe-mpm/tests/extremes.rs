@@ -3,28 +3,17 @@
 //! with a particle starting exactly on the domain edge. Every run must stay finite, keep every
 //! particle inside the domain and not gain energy (max speed stays below the free-fall bound).
 
+mod common;
+
 use glam::DVec3;
 use pipe_mpm::{
     Aabb, Constitutive, DruckerPrager, FixedCorotated, Material, NeoHookean, SimConfig, Simulator,
-    State, StepLimits, VonMises, stable_step,
+    StepLimits, VonMises, stable_step,
 };
 
 fn drop_block<M: Constitutive + Clone>(model: M, e: f64, nu: f64) {
     let dx = 0.05;
-    let mut x = Vec::new();
-    for i in 0..4 {
-        for j in 0..4 {
-            for k in 0..4 {
-                x.push(
-                    DVec3::new(0.4, 0.03, 0.4)
-                        + DVec3::new(i as f64, j as f64, k as f64) * (dx / 2.0),
-                );
-            }
-        }
-    }
-    x[0] = DVec3::new(0.0, 0.03, 0.4); // on the domain edge
-    let mut s = State::at_rest(x);
-    s.v.iter_mut().for_each(|v| *v = DVec3::new(0.0, -1.0, 0.0));
+    let mut s = common::thrown_block(dx);
     let mat = Material::from_e_nu(s.len(), (dx / 2.0f64).powi(3), 1000.0, e, nu).unwrap();
     let dt = stable_step(&model, &s, &mat, dx, StepLimits::default()).dt();
     let sim = Simulator::new(

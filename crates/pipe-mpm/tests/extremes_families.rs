@@ -12,6 +12,8 @@
 //! invalid parameters name the field, and a user-fixed substep count above either limit is
 //! `StepTooLarge` naming the binding limit.
 
+mod common;
+
 use glam::DVec3;
 use pipe_mpm::{
     Aabb, Constitutive, DruckerPrager, Material, MpmError, Newtonian, SimConfig, Simulator, State,
@@ -23,21 +25,7 @@ const E_RANGE: [f64; 3] = [1e2, 1e5, 1e9];
 const NU_RANGE: [f64; 3] = [0.0, 0.3, 0.499];
 
 fn thrown_block() -> State {
-    let mut x = Vec::new();
-    for i in 0..4 {
-        for j in 0..4 {
-            for k in 0..4 {
-                x.push(
-                    DVec3::new(0.4, 0.03, 0.4)
-                        + DVec3::new(i as f64, j as f64, k as f64) * (DX / 2.0),
-                );
-            }
-        }
-    }
-    x[0] = DVec3::new(0.0, 0.03, 0.4); // on the domain edge
-    let mut s = State::at_rest(x);
-    s.v.iter_mut().for_each(|v| *v = DVec3::new(0.0, -1.0, 0.0));
-    s
+    common::thrown_block(DX)
 }
 
 /// Runs the scene; returns the step used and which limit set it.

@@ -211,3 +211,23 @@ pub fn max_diff_s(a: &[f64], b: &[f64]) -> f64 {
 pub fn max_abs_s(a: &[f64]) -> f64 {
     a.iter().map(|x| x.abs()).fold(0.0, f64::max)
 }
+
+/// A 4×4×4 block of particles at spacing `dx/2` thrown down at 1 m/s, with particle 0 placed
+/// on the domain edge (x = 0): the scene of the extreme-parameter tests.
+pub fn thrown_block(dx: f64) -> State {
+    let mut x = Vec::new();
+    for i in 0..4 {
+        for j in 0..4 {
+            for k in 0..4 {
+                x.push(
+                    DVec3::new(0.4, 0.03, 0.4)
+                        + DVec3::new(i as f64, j as f64, k as f64) * (dx / 2.0),
+                );
+            }
+        }
+    }
+    x[0] = DVec3::new(0.0, 0.03, 0.4); // on the domain edge
+    let mut s = State::at_rest(x);
+    s.v.iter_mut().for_each(|v| *v = DVec3::new(0.0, -1.0, 0.0));
+    s
+}
