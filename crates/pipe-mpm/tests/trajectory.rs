@@ -173,7 +173,7 @@ fn blob_material_gradient_through_contact() {
         colliders: vec![Collider::ground(0.0, BoundaryKind::Sticky)],
         walls: None,
     };
-    let loss = |e: f64, ty: f64| {
+    let setup = |e: f64, ty: f64| {
         let mat = Material::from_e_nu_per_particle(
             vec![vol * rho; n],
             vec![vol; n],
@@ -181,14 +181,14 @@ fn blob_material_gradient_through_contact() {
             &vec![nu; n],
         )
         .unwrap();
-        let sim = Simulator::new(
-            VonMises {
-                yield_stress: ty,
-                eta: 0.0,
-            },
-            cfg.clone(),
-        )
-        .unwrap();
+        let model = VonMises {
+            yield_stress: ty,
+            eta: 0.0,
+        };
+        (mat, Simulator::new(model, cfg.clone()).unwrap())
+    };
+    let loss = |e: f64, ty: f64| {
+        let (mat, sim) = setup(e, ty);
         let mut s = s0.clone();
         sim.run(&mut s, &mat, 0.0, frames * n_sub).unwrap();
         s.x.iter()
@@ -196,21 +196,7 @@ fn blob_material_gradient_through_contact() {
             .map(|(a, b)| (*a - *b).length_squared())
             .sum::<f64>()
     };
-    let mat = Material::from_e_nu_per_particle(
-        vec![vol * rho; n],
-        vec![vol; n],
-        &vec![e; n],
-        &vec![nu; n],
-    )
-    .unwrap();
-    let sim = Simulator::new(
-        VonMises {
-            yield_stress: ty,
-            eta: 0.0,
-        },
-        cfg.clone(),
-    )
-    .unwrap();
+    let (mat, sim) = setup(e, ty);
     let mut s = s0.clone();
     let tape = sim
         .forward_tape(&mut s, &mat, 0.0, frames * n_sub, n_sub)
