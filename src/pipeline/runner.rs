@@ -49,6 +49,8 @@ pub struct PlannedStage {
     pub key: String,
     /// Cached, stale (why) or not run.
     pub state: StageState,
+    /// The external files the stage reads (hashed into the key).
+    pub inputs: Vec<super::stage::InputFile>,
 }
 
 /// Why a run stopped.
@@ -209,13 +211,13 @@ impl Workspace {
                     stage: name.clone(),
                     source,
                 })?;
-            for f in files {
+            for f in &files {
                 let h = stat.hash(&f.path).map_err(|source| RunError::Input {
                     stage: name.clone(),
                     path: f.path.clone(),
                     source,
                 })?;
-                inputs.insert(f.logical_name, h);
+                inputs.insert(f.logical_name.clone(), h);
             }
             let upstream = graph.upstream[name]
                 .iter()
@@ -266,6 +268,7 @@ impl Workspace {
                 key_material: km,
                 key,
                 state,
+                inputs: files,
             });
         }
         stat.save(&stat_path);
@@ -358,19 +361,14 @@ impl Workspace {
                 .filter_map(|u| entries.get(u).map(|e| (u.clone(), e.clone())))
                 .collect();
             let spec = pipeline.stage(&p.name).expect("validated");
-            let inputs = stage
-                .inputs(&spec.params, &pipeline.scene)
-                .map_err(|source| RunError::Stage {
-                    stage: p.name.clone(),
-                    source,
-                })?;
+            let inputs = &p.inputs;
             let tmp = self.store.begin(&p.name, &p.key)?;
             let start = Instant::now();
             let mut ctx = StageContext::new(
                 &p.name,
                 &pipeline.scene,
                 &upstream,
-                &inputs,
+                inputs,
                 &tmp,
                 reporter,
                 interrupt,
