@@ -122,6 +122,7 @@ pub fn camera(
         height: h,
         image: String::new(),
         mask: String::new(),
+        plate: None,
         role: crate::scene::frames::Role::Test,
     };
     Ok(Camera::from_row(&row))

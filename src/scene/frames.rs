@@ -58,6 +58,10 @@ pub struct FrameRow {
     pub image: String,
     /// Object mask (8-bit, 255 = object), relative to the entry directory.
     pub mask: String,
+    /// The camera's background plate (the scene without the object), relative to the entry
+    /// directory; `None` when the capture has none. Inside the mask the capture equals
+    /// `image`; outside it equals the plate up to the object's shadow.
+    pub plate: Option<String>,
     /// Train or test.
     pub role: Role,
 }
@@ -75,7 +79,7 @@ fn f64_list(n: i32) -> DataType {
 
 impl Table for Frames {
     const NAME: &'static str = "frames";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
 
     fn schema() -> Schema {
         Schema::new(vec![
@@ -91,6 +95,7 @@ impl Table for Frames {
             Field::new("height", DataType::UInt32, false),
             Field::new("image", DataType::Utf8, false),
             Field::new("mask", DataType::Utf8, false),
+            Field::new("plate", DataType::Utf8, true),
             Field::new("role", DataType::Utf8, false),
         ])
         .with_metadata([
@@ -127,6 +132,7 @@ impl Table for Frames {
                 Arc::new(StringArray::from_iter_values(
                     r.iter().map(|x| x.mask.as_str()),
                 )),
+                Arc::new(StringArray::from_iter(r.iter().map(|x| x.plate.as_deref()))),
                 Arc::new(StringArray::from_iter_values(
                     r.iter().map(|x| x.role.as_str()),
                 )),
@@ -151,6 +157,7 @@ impl Table for Frames {
         let height = column::<UInt32Array>(b, "height");
         let image = column::<StringArray>(b, "image");
         let mask = column::<StringArray>(b, "mask");
+        let plate = column::<StringArray>(b, "plate");
         let role = column::<StringArray>(b, "role");
         let mut rows = Vec::with_capacity(b.num_rows());
         for i in 0..b.num_rows() {
@@ -179,6 +186,7 @@ impl Table for Frames {
                 height: height.value(i),
                 image: image.value(i).to_string(),
                 mask: mask.value(i).to_string(),
+                plate: plate.is_valid(i).then(|| plate.value(i).to_string()),
                 role,
             });
         }

@@ -88,8 +88,8 @@ pub struct Ingest;
 impl TypedStage for Ingest {
     type Params = IngestParams;
     const KIND: &'static str = "ingest";
-    const VERSION: u32 = 1;
-    const DESCRIPTION: &'static str = "Read a PAC-NeRF capture, matte the object against each camera's background plate, write masks, composited images and frames.arrow";
+    const VERSION: u32 = 2;
+    const DESCRIPTION: &'static str = "Read a PAC-NeRF capture, matte the object against each camera's background plate, write masks, composited images, the plates and frames.arrow";
 
     fn output_schemas(&self) -> Vec<(&'static str, u32)> {
         vec![(Frames::NAME, Frames::VERSION)]
@@ -168,6 +168,7 @@ impl TypedStage for Ingest {
         }
         std::fs::create_dir_all(ctx.out_dir.join("images")).map_err(StageError::failed)?;
         std::fs::create_dir_all(ctx.out_dir.join("masks")).map_err(StageError::failed)?;
+        std::fs::create_dir_all(ctx.out_dir.join("plates")).map_err(StageError::failed)?;
 
         // Plates first: they fix each camera's image size.
         let plates: Vec<(u16, Rgb8)> = ds
@@ -188,6 +189,8 @@ impl TypedStage for Ingest {
                     ds.plates[&plates[0].0].path.display()
                 ))));
             }
+            image::write_rgb8(&ctx.out_dir.join(plate_rel(*v)), pl)
+                .map_err(|e| StageError::failed(IngestError::from(e)))?;
         }
 
         ctx.progress.start("matte", images.len() as u64);
@@ -274,6 +277,11 @@ fn selected<'a>(ds: &'a PacnerfScene, p: &IngestParams) -> Vec<&'a PacnerfImage>
             Some(f) => f.iter().any(|f| i32::from(*f) == i.frame),
         })
         .collect()
+}
+
+/// Where a camera's background plate is copied, relative to the entry.
+fn plate_rel(view: u16) -> String {
+    format!("plates/p_{view}.png")
 }
 
 fn gt_mask_path(root: &Path, img: &PacnerfImage) -> PathBuf {
@@ -390,6 +398,7 @@ fn process(
         height: h,
         image: image_rel,
         mask: mask_rel,
+        plate: Some(plate_rel(img.view)),
         role: if test_views.contains(&img.view) {
             Role::Test
         } else {

@@ -106,6 +106,15 @@ fn fixture_scene_cameras_frames_and_masks() {
             u += u32::from(a || b);
         }
         ious.push(f64::from(i) / f64::from(u.max(1)));
+        // The camera's plate is copied byte for byte in its decoded pixels.
+        let plate = row.plate.as_deref().expect("PAC-NeRF captures have plates");
+        assert_eq!(plate, format!("plates/p_{}.png", row.view));
+        assert_eq!(
+            image::open(entry.join(plate)).unwrap().into_rgb8(),
+            image::open(fixture().join(format!("data/r_{}_-1.png", row.view)))
+                .unwrap()
+                .into_rgb8()
+        );
         // The composited image is white wherever the mask is empty.
         let img = image::open(entry.join(&row.image)).unwrap().into_rgb8();
         for (px, m) in img.pixels().zip(&ours) {

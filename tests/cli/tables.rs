@@ -28,6 +28,7 @@ fn frames() -> Frames {
                 height: 98,
                 image: format!("images/r_{i}.png"),
                 mask: format!("masks/m_{i}.png"),
+                plate: (i != 1).then(|| format!("plates/p_{i}.png")),
                 role: if i == 2 { Role::Test } else { Role::Train },
             })
             .collect(),

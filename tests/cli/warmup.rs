@@ -50,15 +50,25 @@ fn draft_warmup_fits_frame_zero_and_generalises_to_the_held_out_view() {
     );
     let test_psnr = value("test_psnr_mean");
     let train_psnr = value("train_psnr_mean");
-    // Measured 29.6 dB for camera 10 (29.45–29.66 over seeds and loss weights; the issue asks
-    // for 30, which 10 training views at 100×100 do not reach here: see the issue note).
-    assert!(test_psnr >= 29.0, "held-out PSNR {test_psnr:.2} dB");
-    assert!(train_psnr >= 33.0, "train PSNR {train_psnr:.2} dB");
-    assert!(value("test_ssim_mean") > 0.975);
+    // The render over camera 10's plate against its capture: measured 36.5 dB (the issue
+    // asks for >= 30; held-out cameras 0, 5 and 6 give 30.0, 34.0 and 33.5 dB).
+    assert!(test_psnr >= 35.0, "held-out PSNR {test_psnr:.2} dB");
+    assert!(train_psnr >= 40.0, "train PSNR {train_psnr:.2} dB");
+    assert!(value("test_ssim_mean") > 0.985);
+    // On white, the capture's anti-aliased edge (object mixed with the plate) caps it: 29.7 dB.
+    assert!(value("test_psnr_solid_mean") >= 29.0);
     let render = image::open(entry.join("renders/test_v10_f0.png")).unwrap();
     assert_eq!((render.width(), render.height()), (100, 100));
     let compare = image::open(entry.join("renders/compare_v10_f0.png")).unwrap();
     assert_eq!((compare.width(), compare.height()), (300, 100));
+    let object = image::open(entry.join("renders/object_v10_f0.png"))
+        .unwrap()
+        .to_rgb8();
+    assert_eq!(
+        object.get_pixel(0, 0).0,
+        [255, 255, 255],
+        "object render on white"
+    );
 }
 
 #[test]

@@ -11,7 +11,7 @@ use std::path::Path;
 
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
-use schemas::WarmupParams;
+use schemas::{Backdrop, WarmupParams};
 use serde_json::{Value, json};
 
 use self::adam::AdamConfig;
@@ -83,17 +83,29 @@ pub mod schemas {
         /// mask and absent outside); 0 disables it.
         #[serde(default = "alpha_weight")]
         pub alpha_weight: f64,
-        /// Train against a random background colour each iteration (the object composited on
-        /// it through its mask) so that no Gaussian can stand in for the background.
-        #[serde(default = "random_background")]
-        pub random_background: bool,
+        /// What the Gaussians are composited over in training: the camera's background
+        /// plate (default; the capture itself, consistent at the object's anti-aliased edge),
+        /// a random colour per iteration, or the ingest background colour.
+        #[serde(default)]
+        pub background: Backdrop,
         /// Seed of the view order and of splits.
         #[serde(default)]
         pub seed: u64,
     }
 
-    fn random_background() -> bool {
-        true
+    /// What rendered Gaussians are composited over when fitting (see [`WarmupParams::background`]).
+    #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+    #[serde(rename_all = "snake_case")]
+    pub enum Backdrop {
+        /// The camera's background plate: the target is the capture inside the object mask
+        /// and the plate outside it (the object's shadow is not modelled).
+        #[default]
+        Plate,
+        /// A uniformly random colour per iteration, so no Gaussian can stand in for the
+        /// background.
+        Random,
+        /// The ingest background colour (white by default).
+        White,
     }
 
     fn alpha_weight() -> f64 {
@@ -198,9 +210,29 @@ pub struct Warmup;
 struct Target {
     row: FrameRow,
     camera: pipe_render::Camera<f32>,
+    /// The object composited over the ingest background colour, RGB in [0, 1].
     pixels: Vec<f32>,
     /// Object mask in [0, 1].
     mask: Vec<f32>,
+    /// The camera's background plate, RGB in [0, 1], when the capture has one.
+    plate: Option<Vec<f32>>,
+}
+
+impl Target {
+    /// The capture with everything outside the object mask replaced by `backdrop`
+    /// (3 values per pixel): `m·image + (1 − m)·backdrop`.
+    fn over(&self, backdrop: &[f32]) -> Vec<f32> {
+        self.pixels
+            .chunks_exact(3)
+            .zip(&self.mask)
+            .zip(backdrop.chunks_exact(3))
+            .flat_map(|((px, m), b)| [0, 1, 2].map(|c| m * px[c] + (1.0 - m) * b[c]))
+            .collect()
+    }
+}
+
+fn to_unit(v: &[u8]) -> Vec<f32> {
+    v.iter().map(|v| f32::from(*v) / 255.0).collect()
 }
 
 fn load_targets(dir: &Path, rows: &[&FrameRow]) -> Result<Vec<Target>, StageError> {
@@ -208,14 +240,52 @@ fn load_targets(dir: &Path, rows: &[&FrameRow]) -> Result<Vec<Target>, StageErro
         .map(|r| {
             let img = image::read_rgb8(&dir.join(&r.image)).map_err(StageError::failed)?;
             let (_, _, mask) = image::read_gray8(&dir.join(&r.mask)).map_err(StageError::failed)?;
+            let plate = match &r.plate {
+                Some(rel) => {
+                    let pl = image::read_rgb8(&dir.join(rel)).map_err(StageError::failed)?;
+                    if (pl.width, pl.height) != (img.width, img.height) {
+                        return Err(StageError::failed(WarmupError::Invalid(format!(
+                            "{}: plate is {}×{}, image {} is {}×{}",
+                            dir.join(rel).display(),
+                            pl.width,
+                            pl.height,
+                            r.image,
+                            img.width,
+                            img.height
+                        ))));
+                    }
+                    Some(to_unit(&pl.data))
+                }
+                None => None,
+            };
             Ok(Target {
                 row: (*r).clone(),
                 camera: splat::render_camera(&Camera::from_row(r)),
-                pixels: img.data.iter().map(|v| f32::from(*v) / 255.0).collect(),
-                mask: mask.iter().map(|v| f32::from(*v) / 255.0).collect(),
+                pixels: to_unit(&img.data),
+                mask: to_unit(&mask),
+                plate,
             })
         })
         .collect()
+}
+
+/// The rendered object (rendered over black) composited over a per-pixel backdrop:
+/// `I = C + (1 − α)·B`.
+fn composite(out: &pipe_render::Rendered<f32>, backdrop: &[f32]) -> Vec<f32> {
+    out.image
+        .iter()
+        .zip(&out.alpha)
+        .zip(backdrop.chunks_exact(3))
+        .flat_map(|((c, a), b)| [0, 1, 2].map(|k| c[k] + (1.0 - a) * b[k]))
+        .collect()
+}
+
+/// ∂L/∂α contributed by the backdrop term of [`composite`]: `−Σ_c ∂L/∂I_c · B_c`.
+fn backdrop_alpha_grad(d_image: &[[f32; 3]], backdrop: &[f32]) -> impl Iterator<Item = f32> {
+    d_image
+        .iter()
+        .zip(backdrop.chunks_exact(3))
+        .map(|(d, b)| -(d[0] * b[0] + d[1] * b[1] + d[2] * b[2]))
 }
 
 impl TypedStage for Warmup {
@@ -326,8 +396,17 @@ impl TypedStage for Warmup {
             * 1.1)
             .max(1e-3) as f32;
 
+        if p.background == Backdrop::Plate
+            && let Some(t) = train.iter().chain(&test).find(|t| t.plate.is_none())
+        {
+            return Err(StageError::failed(WarmupError::Invalid(format!(
+                "stages.warmup.background is `plate`, but camera {} of this capture has no background plate; use `random` or `white`",
+                t.row.view
+            ))));
+        }
+        // Gaussians are rendered over black and composited over a per-pixel backdrop.
         let opts = pipe_render::RenderOptions {
-            background,
+            background: [0.0; 3],
             ..Default::default()
         };
         let iters_per_epoch = train.len() as u32;
@@ -361,41 +440,33 @@ impl TypedStage for Warmup {
                     })
                 };
                 let rg = splat::render_gaussians(&g);
-                let (iter_opts, recomposited) = if p.random_background {
-                    let bg: [f32; 3] = [rng.random(), rng.random(), rng.random()];
-                    let pixels = target
-                        .pixels
-                        .chunks_exact(3)
-                        .zip(&target.mask)
-                        .flat_map(|(px, m)| [0, 1, 2].map(|c| m * px[c] + (1.0 - m) * bg[c]))
-                        .collect::<Vec<f32>>();
-                    (
-                        pipe_render::RenderOptions {
-                            background: bg,
-                            ..opts
-                        },
-                        Some(pixels),
-                    )
-                } else {
-                    (opts, None)
+                let backdrop: Vec<f32> = match p.background {
+                    Backdrop::Plate => target.plate.clone().expect("checked before training"),
+                    Backdrop::Random => {
+                        let c: [f32; 3] = [rng.random(), rng.random(), rng.random()];
+                        c.repeat(w * h)
+                    }
+                    Backdrop::White => background.repeat(w * h),
                 };
-                let target_pixels = recomposited.as_deref().unwrap_or(&target.pixels);
-                let out =
-                    pipe_render::render(&rg, &target.camera, &iter_opts).map_err(|source| {
-                        StageError::failed(WarmupError::Render {
-                            view,
-                            frame,
-                            source,
-                        })
-                    })?;
-                let rendered = pipe_loss::Image::from_rgb("render", &out.image, w, h)
+                let target_pixels = target.over(&backdrop);
+                let out = pipe_render::render(&rg, &target.camera, &opts).map_err(|source| {
+                    StageError::failed(WarmupError::Render {
+                        view,
+                        frame,
+                        source,
+                    })
+                })?;
+                let composited = composite(&out, &backdrop);
+                let rendered = pipe_loss::Image::new("render", &composited, w, h)
                     .map_err(StageError::failed)?;
-                let gt = pipe_loss::Image::new("target", target_pixels, w, h)
+                let gt = pipe_loss::Image::new("target", &target_pixels, w, h)
                     .map_err(StageError::failed)?;
                 let (mut loss, d_image) =
                     pipe_loss::l1_dssim(rendered, gt, p.lambda).map_err(StageError::failed)?;
                 // Silhouette term: w·mean|α − mask|, gradient w·sign(α − mask)/n.
-                let d_alpha: Option<Vec<f32>> = (p.alpha_weight > 0.0).then(|| {
+                let (d_image, _) = d_image.as_chunks::<3>();
+                let mut d_alpha: Vec<f32> = backdrop_alpha_grad(d_image, &backdrop).collect();
+                if p.alpha_weight > 0.0 {
                     let n = out.alpha.len() as f64;
                     let wgt = (p.alpha_weight / n) as f32;
                     loss += p.alpha_weight
@@ -406,25 +477,22 @@ impl TypedStage for Warmup {
                             .map(|(a, m)| f64::from((a - m).abs()))
                             .sum::<f64>()
                         / n;
-                    out.alpha
-                        .iter()
-                        .zip(&target.mask)
-                        .map(|(a, m)| wgt * (a - m).signum())
-                        .collect()
-                });
+                    for ((d, a), m) in d_alpha.iter_mut().zip(&out.alpha).zip(&target.mask) {
+                        *d += wgt * (a - m).signum();
+                    }
+                }
                 if !loss.is_finite() {
                     return Err(nonfinite("loss"));
                 }
                 loss_sum += loss;
                 psnr_sum += pipe_loss::psnr(rendered, gt).map_err(StageError::failed)?;
-                let (d_image, _) = d_image.as_chunks::<3>();
                 let grads = pipe_render::backward(
                     &rg,
                     &target.camera,
-                    &iter_opts,
+                    &opts,
                     &out,
                     d_image,
-                    d_alpha.as_deref(),
+                    Some(&d_alpha),
                 )
                 .map_err(|source| {
                     StageError::failed(WarmupError::Render {
@@ -560,12 +628,16 @@ impl TypedStage for Warmup {
         }
         debug_assert_eq!(g.sh.len(), g.len() * k);
 
-        // Held-out views (and the training views, for reference).
+        // Held-out views (and the training views, for reference). The score compares the
+        // render composited over the camera's plate with the capture (the object's shadow
+        // excluded); `*_psnr_solid` compares the render on the ingest background colour with
+        // the composited image.
         std::fs::create_dir_all(ctx.out_dir.join("renders")).map_err(StageError::failed)?;
         let rg = splat::render_gaussians(&g);
+        let solid = background.repeat(w * h);
         let mut summary = Vec::new();
         for (set, targets) in [("test", &test), ("train", &train)] {
-            let (mut psnr_sum, mut ssim_sum) = (0.0, 0.0);
+            let (mut psnr_sum, mut ssim_sum, mut solid_sum) = (0.0, 0.0, 0.0);
             for target in targets.iter() {
                 let (view, frame) = (target.row.view, target.row.frame);
                 let out = pipe_render::render(&rg, &target.camera, &opts).map_err(|source| {
@@ -575,17 +647,30 @@ impl TypedStage for Warmup {
                         source,
                     })
                 })?;
-                let rendered = pipe_loss::Image::from_rgb("render", &out.image, w, h)
-                    .map_err(StageError::failed)?;
-                let gt = pipe_loss::Image::new("target", &target.pixels, w, h)
-                    .map_err(StageError::failed)?;
+                let backdrop = target.plate.as_deref().unwrap_or(&solid);
+                let over = composite(&out, backdrop);
+                let truth = target.over(backdrop);
+                let on_solid = composite(&out, &solid);
+                let img = |name, px| pipe_loss::Image::new(name, px, w, h);
+                let (rendered, gt) = (
+                    img("render", &over).map_err(StageError::failed)?,
+                    img("target", &truth).map_err(StageError::failed)?,
+                );
                 let psnr = pipe_loss::psnr(rendered, gt).map_err(StageError::failed)?;
                 let ssim = pipe_loss::ssim(rendered, gt).map_err(StageError::failed)?;
+                let psnr_solid = pipe_loss::psnr(
+                    img("render", &on_solid).map_err(StageError::failed)?,
+                    img("target", &target.pixels).map_err(StageError::failed)?,
+                )
+                .map_err(StageError::failed)?;
                 psnr_sum += psnr;
                 ssim_sum += ssim;
-                for (metric, value) in
-                    [(format!("{set}_psnr"), psnr), (format!("{set}_ssim"), ssim)]
-                {
+                solid_sum += psnr_solid;
+                for (metric, value) in [
+                    (format!("{set}_psnr"), psnr),
+                    (format!("{set}_ssim"), ssim),
+                    (format!("{set}_psnr_solid"), psnr_solid),
+                ] {
                     ctx.metric(MetricRow {
                         epoch: None,
                         view: Some(view),
@@ -595,42 +680,39 @@ impl TypedStage for Warmup {
                     });
                 }
                 if set == "test" {
-                    let render = Rgb8 {
+                    let rgb8 = |px: &[f32]| Rgb8 {
                         width: w as u32,
                         height: h as u32,
-                        data: splat::to_rgb8(&out.image),
+                        data: px
+                            .iter()
+                            .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+                            .collect(),
                     };
-                    image::write_rgb8(
-                        &ctx.out_dir
-                            .join(format!("renders/test_v{view}_f{frame}.png")),
-                        &render,
-                    )
-                    .map_err(StageError::failed)?;
-                    let truth: Vec<u8> = target
-                        .pixels
-                        .iter()
-                        .map(|v| (v * 255.0).round() as u8)
-                        .collect();
-                    let side = side_by_side(&truth, &render.data, w, h);
-                    image::write_rgb8(
-                        &ctx.out_dir
-                            .join(format!("renders/compare_v{view}_f{frame}.png")),
-                        &side,
-                    )
-                    .map_err(StageError::failed)?;
+                    let (render, object) = (rgb8(&over), rgb8(&on_solid));
+                    let side = side_by_side(&rgb8(&truth).data, &render.data, w, h);
+                    for (name, picture) in [
+                        (format!("test_v{view}_f{frame}.png"), &render),
+                        (format!("object_v{view}_f{frame}.png"), &object),
+                        (format!("compare_v{view}_f{frame}.png"), &side),
+                    ] {
+                        image::write_rgb8(&ctx.out_dir.join("renders").join(name), picture)
+                            .map_err(StageError::failed)?;
+                    }
                 }
             }
             if !targets.is_empty() {
                 let n = targets.len() as f64;
                 summary.push(format!(
-                    "{set} PSNR {:.2} dB, SSIM {:.4} ({} views)",
+                    "{set} PSNR {:.2} dB, SSIM {:.4} over the plate, {:.2} dB on the solid background ({} views)",
                     psnr_sum / n,
                     ssim_sum / n,
+                    solid_sum / n,
                     targets.len()
                 ));
                 for (metric, value) in [
                     (format!("{set}_psnr_mean"), psnr_sum / n),
                     (format!("{set}_ssim_mean"), ssim_sum / n),
+                    (format!("{set}_psnr_solid_mean"), solid_sum / n),
                 ] {
                     ctx.metric(MetricRow {
                         epoch: None,
