@@ -109,7 +109,7 @@ enum Command {
         #[arg(long, requires = "width")]
         height: Option<u32>,
         /// Background RGB in [0, 1], e.g. `1,1,1`.
-        #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = [1.0f32, 1.0, 1.0])]
+        #[arg(long, value_delimiter = ',', default_values_t = [1.0f32, 1.0, 1.0])]
         background: Vec<f32>,
     },
     /// Simulate a point cloud or 3DGS PLY as a continuum (MLS-MPM) and write the frames.
@@ -195,7 +195,7 @@ pub fn run(args: impl IntoIterator<Item = impl Into<OsString> + Clone>, registry
                 src = s.source();
             }
             match e {
-                RunError::Spec(_) | RunError::Selection(_) => 2,
+                RunError::Spec(_) | RunError::Selection(_) | RunError::Usage(_) => 2,
                 RunError::Interrupted(_) => 130,
                 _ => 1,
             }
@@ -328,7 +328,12 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
                 view: *view,
                 frame: *frame,
                 size: width.zip(*height),
-                background: [background[0], background[1], background[2]],
+                background: <[f32; 3]>::try_from(background.as_slice()).map_err(|_| {
+                    RunError::Usage(format!(
+                        "--background: expected three comma-separated values in [0, 1] like `1,1,1`, found {} value(s)",
+                        background.len()
+                    ))
+                })?,
             };
             let p = crate::preview::render(&req).map_err(|e| RunError::Output(e.to_string()))?;
             crate::io::image::write_rgb8(out, &p.image)

@@ -89,6 +89,9 @@ pub enum RunError {
     /// `--from`, `--until` or `--force` name a stage the pipeline does not have.
     #[error("{0}")]
     Selection(String),
+    /// A command-line value is malformed (e.g. `--background 1,1`).
+    #[error("{0}")]
+    Usage(String),
     /// A command other than `run` (export, render, …) could not produce its output.
     #[error("{0}")]
     Output(String),

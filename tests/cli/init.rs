@@ -103,19 +103,49 @@ fn visual_hull_init_contains_the_object_and_renders_its_silhouette() {
             png.to_str().unwrap(),
             "--depth",
             exr.to_str().unwrap(),
+            "--background",
+            "0,0,0.5",
         ],
-        reg,
+        reg.clone(),
     );
     assert_eq!(code, 0);
     assert!(exr.metadata().unwrap().len() > 0);
     let img = image::open(&png).unwrap().into_rgb8();
     assert_eq!(img.dimensions(), (100, 100));
+    assert_eq!(
+        img.get_pixel(0, 0).0,
+        [0, 0, 128],
+        "the --background colour"
+    );
+    for bad in ["1,1", "1,1,1,1"] {
+        let code = pipe::cli::run(
+            [
+                "pipe",
+                "render",
+                out_ply.to_str().unwrap(),
+                "--cameras",
+                cams.to_str().unwrap(),
+            ]
+            .into_iter()
+            .chain([
+                "--view",
+                "3",
+                "--out",
+                png.to_str().unwrap(),
+                "--background",
+                bad,
+            ]),
+            reg.clone(),
+        );
+        assert_ne!(code, 0, "--background {bad}");
+    }
     let gt_mask = image::open(fixture().join("gt/masks/m_3_0.png"))
         .unwrap()
         .into_luma8();
     let (mut inter, mut union) = (0u32, 0u32);
     for (px, m) in img.pixels().zip(gt_mask.pixels()) {
-        let ours = px.0.iter().any(|c| *c < 200);
+        let [r, g, b] = px.0.map(i32::from);
+        let ours = r > 55 || g > 55 || (b - 128).abs() > 55;
         let theirs = m.0[0] >= 128;
         inter += u32::from(ours && theirs);
         union += u32::from(ours || theirs);
