@@ -236,3 +236,26 @@ fn committed_pipeline_schema_matches_the_code() {
         "#/$defs/MatteMode"
     );
 }
+
+#[test]
+fn shipped_pipeline_files_parse_with_the_builtin_stages() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines");
+    let mut seen = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "yaml") {
+            let text = std::fs::read_to_string(&path).unwrap();
+            let p = spec::parse(
+                &path,
+                &text,
+                &pipe::stages::builtin(),
+                &Overrides::default(),
+            )
+            .unwrap_or_else(|e| panic!("{e}"));
+            let kinds: Vec<&str> = p.stages.iter().map(|s| s.name.as_str()).collect();
+            assert_eq!(kinds, ["ingest", "init", "warmup"], "{}", path.display());
+            seen += 1;
+        }
+    }
+    assert!(seen >= 2, "pipelines/*.yaml");
+}
