@@ -52,25 +52,33 @@ fn forward_backward(b: Bencher, (n, res): (usize, u32)) {
     });
 }
 
-/// Process CPU time (user + system, all threads) in ms from `/proc/self/stat`, if readable.
+/// Process CPU time (all threads, ns resolution) in ms: the sum of the on-CPU times in
+/// `/proc/self/task/*/schedstat` (threads that exited are not counted, so keep the rayon pool
+/// alive), NaN where unavailable. Unlike wall time it does not count waiting for a CPU while
+/// other processes share the machine.
 fn cpu_ms() -> f64 {
-    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
+    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
         return f64::NAN;
     };
-    let after = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let f: Vec<f64> = after
-        .split_whitespace()
-        .filter_map(|x| x.parse().ok())
-        .collect();
-    // fields after the command: state(skipped, not numeric) ppid ... utime is field 14 overall
-    (f.get(10).copied().unwrap_or(f64::NAN) + f.get(11).copied().unwrap_or(f64::NAN)) * 10.0
+    let mut ns = 0u64;
+    for t in tasks.flatten() {
+        let Ok(s) = std::fs::read_to_string(t.path().join("schedstat")) else {
+            return f64::NAN;
+        };
+        ns += s
+            .split_whitespace()
+            .next()
+            .and_then(|x| x.parse().ok())
+            .unwrap_or(0);
+    }
+    ns as f64 * 1e-6
 }
 
 fn main() {
     if let Ok(which) = std::env::var("RASTER_PHASES") {
         let opts = RenderOptions::default();
         println!(
-            "phase split (ms), per phase min of RASTER_RUNS (5) runs: N res | project sort blend | bwd: blend reduce project | isects max/tile"
+            "phase split (ms), per phase min of RASTER_RUNS (5) runs: N res | project sort blend | bwd: blend reduce project | isects max/tile | CPU ms (all threads, min over runs): fwd bwd fwd+bwd"
         );
         for (n, res) in CONFIGS {
             if which != "all" && which != format!("{n}:{res}") {
@@ -80,7 +88,7 @@ fn main() {
             let g = s.scene.gaussians_rgb();
             let mut runs: Vec<[f64; 6]> = Vec::new();
             let mut isects = (0, 0);
-            let mut cpu = f64::INFINITY;
+            let mut cpu = [f64::INFINITY; 3];
             let runs_n: usize = std::env::var("RASTER_RUNS")
                 .ok()
                 .and_then(|v| v.parse().ok())
@@ -88,7 +96,9 @@ fn main() {
             for _ in 0..runs_n {
                 let c0 = cpu_ms();
                 let out = render(&g, &s.cam, &opts).unwrap();
+                let c1 = cpu_ms();
                 let gr = backward(&g, &s.cam, &opts, &out, &s.d_image, None).unwrap();
+                let c2 = cpu_ms();
                 let (f, bw) = (out.timings, gr.timings);
                 let ms = |d: std::time::Duration| d.as_secs_f64() * 1e3;
                 runs.push([
@@ -101,13 +111,15 @@ fn main() {
                 ]);
                 isects = (out.bins.n_intersections(), out.bins.max_per_tile());
                 drop((out, gr));
-                cpu = cpu.min(cpu_ms() - c0);
+                for (m, d) in cpu.iter_mut().zip([c1 - c0, c2 - c1, c2 - c0]) {
+                    *m = m.min(d);
+                }
             }
             let r: [f64; 6] =
                 std::array::from_fn(|k| runs.iter().map(|x| x[k]).fold(f64::INFINITY, f64::min));
             println!(
-                "{n:>6} {res:>4} | {:7.1} {:7.1} {:7.1} | {:7.1} {:7.1} {:7.1} | {} {} | {cpu:.0}",
-                r[0], r[1], r[2], r[3], r[4], r[5], isects.0, isects.1
+                "{n:>6} {res:>4} | {:7.1} {:7.1} {:7.1} | {:7.1} {:7.1} {:7.1} | {} {} | {:.0} {:.0} {:.0}",
+                r[0], r[1], r[2], r[3], r[4], r[5], isects.0, isects.1, cpu[0], cpu[1], cpu[2]
             );
         }
     }

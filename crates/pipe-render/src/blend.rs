@@ -7,6 +7,10 @@
 //! arrays. Per pixel this performs the same floating-point operations, in the same order, as
 //! the per-pixel loop of the reference; it only skips pixels a splat cannot reach. Forward
 //! and backward share [`hits`], so they take bit-identical skip decisions.
+//!
+//! For `f32` on x86-64 CPUs with AVX-512 or AVX2+FMA (detected at run time), the tiles go to
+//! the explicit vector kernels of `crate::simd` instead: same rules and per-pixel order,
+//! rounding aside (fused multiply-adds); `f64` and other CPUs use the portable loops here.
 
 // Lane loops index several fixed-size arrays in lock step so that they vectorise.
 #![allow(clippy::needless_range_loop)]
@@ -77,7 +81,7 @@ pub(crate) struct TileForward<T> {
 }
 
 impl<T: Real> TileForward<T> {
-    fn reset(&mut self) {
+    pub fn reset(&mut self) {
         let n = TILE_ROWS * STRIDE;
         let fill = |v: &mut Vec<T>, x: T| {
             v.clear();
@@ -145,8 +149,24 @@ fn forward_batch<T: Real, const N: usize>(
     stops as usize
 }
 
-/// Front-to-back blend of one tile into `st` (pixel `(lx, ly)` at `ly·STRIDE + lx`).
+/// Front-to-back blend of one tile into `st` (pixel `(lx, ly)` at `ly·STRIDE + lx`): the
+/// AVX-512 or AVX2 kernel for `f32` where the CPU has one, else [`forward_tile_portable`].
 pub(crate) fn forward_tile<T: Real>(splats: &[Splat<T>], r: TileRect, st: &mut TileForward<T>) {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(st32) = (st as &mut dyn std::any::Any).downcast_mut::<TileForward<f32>>()
+        && let Some(k) = crate::simd::kernel()
+    {
+        return crate::simd::forward_tile(k, splats, r, st32);
+    }
+    forward_tile_portable(splats, r, st);
+}
+
+/// [`forward_tile`] with the lane loops left to the compiler (any `T`, any CPU).
+pub(crate) fn forward_tile_portable<T: Real>(
+    splats: &[Splat<T>],
+    r: TileRect,
+    st: &mut TileForward<T>,
+) {
     debug_assert!(r.x1 > r.x0 && r.y1 > r.y0 && r.width() <= TILE_ROWS && r.y1 - r.y0 <= TILE_ROWS);
     debug_assert!(splats.len() < i32::MAX as usize);
     st.reset();
@@ -311,8 +331,25 @@ fn backward_batch<T: Real, const N: usize>(
     }
 }
 
-/// Back-to-front backward of one tile; writes one gradient per splat into `out`.
+/// Back-to-front backward of one tile; writes one gradient per splat into `out`: the
+/// AVX-512 or AVX2 kernel for `f32` where the CPU has one, else [`backward_tile_portable`].
 pub(crate) fn backward_tile<T: Real>(
+    splats: &[Splat<T>],
+    r: TileRect,
+    st: &mut TileBackward<T>,
+    out: &mut [SplatGrad<T>],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(st32) = (st as &mut dyn std::any::Any).downcast_mut::<TileBackward<f32>>()
+        && let Some(k) = crate::simd::kernel()
+    {
+        return crate::simd::backward_tile(k, splats, r, st32, out);
+    }
+    backward_tile_portable(splats, r, st, out);
+}
+
+/// [`backward_tile`] with the lane loops left to the compiler (any `T`, any CPU).
+pub(crate) fn backward_tile_portable<T: Real>(
     splats: &[Splat<T>],
     r: TileRect,
     st: &mut TileBackward<T>,

@@ -56,6 +56,8 @@ pub mod gaussians;
 pub mod project;
 pub mod real;
 pub mod sh;
+#[cfg(target_arch = "x86_64")]
+mod simd;
 mod splat;
 pub mod tiles;
 
