@@ -753,3 +753,144 @@ fn side_by_side(truth: &[u8], render: &[u8], w: usize, h: usize) -> Rgb8 {
         data,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Three overlapping Gaussians in front of a 24×20 camera, and a constant backdrop.
+    fn scene() -> (
+        Vec<[f32; 3]>,
+        Vec<[f32; 3]>,
+        Vec<[f32; 4]>,
+        Vec<f32>,
+        Vec<[f32; 3]>,
+    ) {
+        (
+            vec![[0.0, 0.0, 3.0], [0.2, -0.1, 3.5], [-0.3, 0.2, 2.8]],
+            vec![[-1.5, -1.8, -1.6], [-1.7, -1.4, -1.9], [-1.6, -1.6, -1.6]],
+            vec![
+                [1.0, 0.0, 0.0, 0.0],
+                [0.9, 0.3, 0.1, 0.0],
+                [0.8, 0.0, 0.5, 0.2],
+            ],
+            vec![0.5, 1.5, -0.2],
+            vec![[0.9, 0.2, 0.1], [0.1, 0.8, 0.3], [0.2, 0.3, 0.9]],
+        )
+    }
+
+    fn camera() -> pipe_render::Camera<f32> {
+        let eye = |r: usize, c: usize| if r == c { 1.0 } else { 0.0 };
+        pipe_render::Camera {
+            camera_from_world_rotation: std::array::from_fn(|r| std::array::from_fn(|c| eye(r, c))),
+            camera_from_world_translation: [0.0; 3],
+            fx: 30.0,
+            fy: 30.0,
+            cx: 12.0,
+            cy: 10.0,
+            width: 24,
+            height: 20,
+            near: 0.01,
+        }
+    }
+
+    /// `composite` and `backdrop_alpha_grad` against the renderer's own background term
+    /// (tested there against finite differences): for a constant backdrop B, rendering over
+    /// black and compositing must equal rendering over B, in value and in every gradient.
+    #[test]
+    fn backdrop_composite_and_its_alpha_gradient_match_the_renderer_background() {
+        let (means, log_scales, quats, logits, rgb) = scene();
+        let g = pipe_render::Gaussians {
+            means: &means,
+            scales: pipe_render::Scales::Log(&log_scales),
+            quats: &quats,
+            opacities: pipe_render::Opacities::Logit(&logits),
+            colors: pipe_render::Colors::Rgb(&rgb),
+        };
+        let cam = camera();
+        let b = [0.3f32, 0.6, 0.9];
+        let n = (cam.width * cam.height) as usize;
+        let backdrop = b.repeat(n);
+        let black = pipe_render::RenderOptions {
+            background: [0.0; 3],
+            ..Default::default()
+        };
+        let over_b = pipe_render::RenderOptions {
+            background: b,
+            ..Default::default()
+        };
+        let out0 = pipe_render::render(&g, &cam, &black).unwrap();
+        let out_b = pipe_render::render(&g, &cam, &over_b).unwrap();
+        let ours = composite(&out0, &backdrop);
+        for (x, y) in ours.iter().zip(out_b.image.as_flattened()) {
+            assert!((x - y).abs() < 1e-6, "{x} vs {y}");
+        }
+        assert!(
+            out0.alpha.iter().any(|a| *a > 0.5),
+            "the Gaussians cover pixels"
+        );
+        let d_image: Vec<[f32; 3]> = (0..n)
+            .map(|i| [0, 1, 2].map(|c| ((i * 7 + c * 3) % 11) as f32 / 11.0 - 0.5))
+            .collect();
+        let d_alpha: Vec<f32> = backdrop_alpha_grad(&d_image, &backdrop).collect();
+        let ga = pipe_render::backward(&g, &cam, &black, &out0, &d_image, Some(&d_alpha)).unwrap();
+        let gb = pipe_render::backward(&g, &cam, &over_b, &out_b, &d_image, None).unwrap();
+        let close = |a: &[f32], b: &[f32], what: &str| {
+            let scale = b.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
+            for (x, y) in a.iter().zip(b) {
+                assert!((x - y).abs() <= 1e-5 * scale, "{what}: {x} vs {y}");
+            }
+        };
+        close(ga.means.as_flattened(), gb.means.as_flattened(), "means");
+        close(
+            ga.log_scales.as_flattened(),
+            gb.log_scales.as_flattened(),
+            "log-scales",
+        );
+        close(
+            ga.quats.as_flattened(),
+            gb.quats.as_flattened(),
+            "quaternions",
+        );
+        close(&ga.opacity_logits, &gb.opacity_logits, "opacity logits");
+        close(
+            ga.colors.as_flattened(),
+            gb.colors.as_flattened(),
+            "colours",
+        );
+        assert!(
+            gb.opacity_logits.iter().any(|v| v.abs() > 1e-4),
+            "non-trivial gradients"
+        );
+    }
+
+    #[test]
+    fn the_target_is_the_capture_inside_the_mask_and_the_backdrop_outside() {
+        let t = Target {
+            row: FrameRow {
+                view: 0,
+                frame: 0,
+                time_s: 0.0,
+                world_from_camera: [0.0; 12],
+                fx: 1.0,
+                fy: 1.0,
+                cx: 1.0,
+                cy: 0.5,
+                width: 2,
+                height: 1,
+                image: String::new(),
+                mask: String::new(),
+                plate: None,
+                role: Role::Train,
+            },
+            camera: camera(),
+            pixels: vec![0.1, 0.2, 0.3, 1.0, 1.0, 1.0],
+            mask: vec![1.0, 0.0],
+            plate: None,
+        };
+        assert_eq!(
+            t.over(&[0.5, 0.5, 0.5, 0.4, 0.5, 0.6]),
+            vec![0.1, 0.2, 0.3, 0.4, 0.5, 0.6]
+        );
+    }
+}
