@@ -758,14 +758,17 @@ fn side_by_side(truth: &[u8], render: &[u8], w: usize, h: usize) -> Rgb8 {
 mod tests {
     use super::*;
 
-    /// Three overlapping Gaussians in front of a 24×20 camera, and a constant backdrop.
-    fn scene() -> (
+    /// Means, log-scales, quaternions, opacity logits and RGB of a few Gaussians.
+    type Scene = (
         Vec<[f32; 3]>,
         Vec<[f32; 3]>,
         Vec<[f32; 4]>,
         Vec<f32>,
         Vec<[f32; 3]>,
-    ) {
+    );
+
+    /// Three overlapping Gaussians in front of the camera below.
+    fn scene() -> Scene {
         (
             vec![[0.0, 0.0, 3.0], [0.2, -0.1, 3.5], [-0.3, 0.2, 2.8]],
             vec![[-1.5, -1.8, -1.6], [-1.7, -1.4, -1.9], [-1.6, -1.6, -1.6]],
