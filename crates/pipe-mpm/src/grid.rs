@@ -140,6 +140,28 @@ impl GridSpec {
         [r / self.dims[1], r % self.dims[1], z]
     }
 
+    /// The three z-consecutive entries of `data` (a grid array, or a chunk starting at x-layer
+    /// `first_layer`) at stencil row `(local.x + i, local.y + j, local.z ..)`.
+    #[inline(always)]
+    pub fn row<'a, T>(&self, data: &'a [T], local: [usize; 3], i: usize, j: usize) -> &'a [T] {
+        let r = self.linear([local[0] + i, local[1] + j, local[2]]);
+        &data[r..r + 3]
+    }
+
+    /// Mutable [`Self::row`] of a chunk that starts at x-layer `first_layer`.
+    #[inline(always)]
+    pub fn row_mut<'a, T>(
+        &self,
+        data: &'a mut [T],
+        first_layer: usize,
+        local: [usize; 3],
+        i: usize,
+        j: usize,
+    ) -> &'a mut [T] {
+        let r = self.linear([local[0] + i, local[1] + j, local[2]]) - first_layer * self.layer();
+        &mut data[r..r + 3]
+    }
+
     /// World position (m) of a local node index.
     #[inline]
     pub fn node_pos(&self, l: [usize; 3]) -> DVec3 {
@@ -266,6 +288,12 @@ impl Stencil {
                 }
             }
         }
+    }
+
+    /// `node − particle` offsets (m) per axis for offsets 0, 1, 2: `d[o].x` is `px` of `o`, etc.
+    #[inline(always)]
+    pub fn offsets(&self, dx: f64) -> [DVec3; 3] {
+        [0.0, 1.0, 2.0].map(|o| (DVec3::splat(o) - self.fx) * dx)
     }
 
     /// Local node index of offset `o`.

@@ -44,22 +44,32 @@ pub(crate) fn affine(
     *tau * (-dt * volume * d_inv) + *c * mass
 }
 
-/// Scatters particles into `nodes` (cleared first).
+/// Scatters particles into `nodes` (cleared first). `mom + A dpos` is built axis by axis
+/// along the separable stencil: `(mom + A₀ px) + A₁ py` per row, `+ A₂ pz` per node.
 pub(crate) fn p2g(grid: &GridSpec, bins: &Bins, inp: P2gIn<'_>, nodes: &mut Vec<Node>) {
     nodes.clear();
     nodes.resize(grid.len(), Node::default());
     scatter(grid, bins, nodes, |p, chunk, first| {
         let st = grid.stencil(inp.x[p]);
+        let d = st.offsets(grid.dx);
         let m = inp.mass[p];
         let a = affine(grid, inp.dt, inp.volume[p], m, &inp.tau[p], &inp.c[p]);
         let mut mom = inp.v[p] * m;
         if let Some(e) = inp.extra {
             mom += e[p];
         }
-        st.for_each_node(grid, first, |_, i, w, dpos| {
-            let n = &mut chunk[i];
-            n.mv += w * (mom + a * dpos);
-            n.m += w * m;
-        });
+        for i in 0..3 {
+            let q_x = mom + a.x_axis * d[i].x;
+            for j in 0..3 {
+                let q_xy = q_x + a.y_axis * d[j].y;
+                let wxy = st.w[i].x * st.w[j].y;
+                let row = grid.row_mut(chunk, first, st.local, i, j);
+                for (k, n) in row.iter_mut().enumerate() {
+                    let w = wxy * st.w[k].z;
+                    n.mv += w * (q_xy + a.z_axis * d[k].z);
+                    n.m += w * m;
+                }
+            }
+        }
     });
 }

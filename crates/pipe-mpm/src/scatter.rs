@@ -18,28 +18,47 @@ pub struct Bins {
     pub order: Vec<u32>,
     /// `order[start[s]..start[s + 1]]` are the particles of slab `s`.
     pub start: Vec<usize>,
+    /// Scratch of [`Self::rebuild`] (kept to avoid allocating every substep).
+    sorted: Vec<u32>,
+    fill: Vec<usize>,
 }
 
 impl Bins {
     /// Bin particles at positions `x` (inside the grid domain).
     pub fn new(grid: &GridSpec, x: &[DVec3]) -> Self {
+        let mut b = Self::default();
+        b.rebuild(grid, x);
+        b
+    }
+
+    /// Re-bins particles at positions `x`, reusing the buffers (a counting sort, stable).
+    pub fn rebuild(&mut self, grid: &GridSpec, x: &[DVec3]) {
         let n_slabs = grid.dims[0].div_ceil(3);
-        let slab: Vec<usize> = x.iter().map(|&p| grid.stencil(p).local[0] / 3).collect();
-        let mut count = vec![0usize; n_slabs + 1];
+        // `order` first holds each particle's slab, then is overwritten by the sorted indices.
+        let mut slab = std::mem::take(&mut self.order);
+        slab.clear();
+        slab.extend(x.iter().map(|&p| (grid.stencil(p).local[0] / 3) as u32));
+        self.start.clear();
+        self.start.resize(n_slabs + 1, 0);
         for &s in &slab {
-            count[s + 1] += 1;
+            self.start[s as usize + 1] += 1;
         }
         for s in 0..n_slabs {
-            count[s + 1] += count[s];
+            self.start[s + 1] += self.start[s];
         }
-        let start = count.clone();
-        let mut fill = count;
-        let mut order = vec![0u32; x.len()];
+        let mut fill = std::mem::take(&mut self.fill);
+        fill.clear();
+        fill.extend_from_slice(&self.start);
+        let mut order = std::mem::take(&mut self.sorted);
+        order.clear();
+        order.resize(x.len(), 0);
         for (p, &s) in slab.iter().enumerate() {
-            order[fill[s]] = p as u32;
-            fill[s] += 1;
+            order[fill[s as usize]] = p as u32;
+            fill[s as usize] += 1;
         }
-        Self { order, start }
+        self.sorted = slab;
+        self.fill = fill;
+        self.order = order;
     }
 
     fn slab(&self, s: usize) -> &[u32] {
@@ -75,5 +94,51 @@ where
                     f(p as usize, c, 6 * k + 3);
                 }
             });
+    }
+}
+
+/// [`scatter`] that also hands `f` the particle's own entry of `per`, an output buffer in bin
+/// order (`per[i]` belongs to particle `bins.order[i]`): `f(particle, entry, chunk, first)`.
+pub fn scatter_with<T, O, F>(grid: &GridSpec, bins: &Bins, out: &mut [T], per: &mut [O], f: F)
+where
+    T: Send,
+    O: Send,
+    F: Fn(usize, &mut O, &mut [T], usize) + Sync,
+{
+    let layer = grid.layer();
+    debug_assert_eq!(out.len(), grid.len());
+    debug_assert_eq!(per.len(), bins.order.len());
+    let chunk = 6 * layer;
+    // Split `per` by slab, then by parity (even slabs pair with the chunks at 6k, odd ones with
+    // the chunks at 6k + 3, as in `scatter`).
+    let (mut even, mut odd) = (Vec::new(), Vec::new());
+    let mut rest = per;
+    for s in 0..bins.start.len().saturating_sub(1) {
+        let (mine, tail) = rest.split_at_mut(bins.start[s + 1] - bins.start[s]);
+        rest = tail;
+        let part = (bins.slab(s), mine);
+        if s % 2 == 0 {
+            even.push(part);
+        } else {
+            odd.push(part);
+        }
+    }
+    let run = |k: usize, c: &mut [T], (ps, os): (&[u32], &mut [O])| {
+        for (&p, o) in ps.iter().zip(os) {
+            f(p as usize, o, c, k);
+        }
+    };
+    debug_assert!(even.len() <= out.len().div_ceil(chunk));
+    out.par_chunks_mut(chunk)
+        .zip(even)
+        .enumerate()
+        .for_each(|(k, (c, part))| run(6 * k, c, part));
+    if out.len() > 3 * layer {
+        debug_assert!(odd.len() <= (out.len() - 3 * layer).div_ceil(chunk));
+        out[3 * layer..]
+            .par_chunks_mut(chunk)
+            .zip(odd)
+            .enumerate()
+            .for_each(|(k, (c, part))| run(6 * k + 3, c, part));
     }
 }

@@ -68,15 +68,17 @@ pub struct RunReport {
     pub max_held: usize,
 }
 
-/// Intermediates of one substep (kept for the adjoint).
+/// Intermediates of one substep (reused across substeps; the adjoint recomputes them).
 #[derive(Debug, Clone, Default)]
 pub(crate) struct Work {
     pub bins: Bins,
-    pub f_tmp: Vec<DMat3>,
     pub tau: Vec<DMat3>,
     pub nodes: Vec<Node>,
     pub vgrid: Vec<DVec3>,
     pub extra: Option<Vec<DVec3>>,
+    /// Set by [`Simulator::forward`] when some new `x, v, C` or `F` is NaN/Inf (checked in the
+    /// kernels, so the full scan runs only then).
+    pub non_finite: bool,
 }
 
 /// A differentiable MLS-MPM simulator for one constitutive model `M`.
@@ -180,38 +182,80 @@ impl<M: Constitutive> Simulator<M> {
             .sum()
     }
 
-    /// One substep from `s` (positions inside the domain) at time `t` (s) into `out`.
+    /// One substep of `s` (positions inside the domain) at time `t` (s), in place: every
+    /// kernel reads only its own particle's old values after the previous kernel wrote them
+    /// (`F` before P2G, `x, v, C` after it), so no second state is needed.
     /// Returns the number of particles held at the domain edge.
-    pub(crate) fn forward(
+    pub(crate) fn forward(&self, s: &mut State, mat: &Material, t: f64, w: &mut Work) -> usize {
+        self.forward_from(None, s, mat, t, w)
+    }
+
+    /// One substep from `src` into `s` (buffers of the same length), or of `s` in place when
+    /// `src` is `None`; bit-identical either way.
+    pub(crate) fn forward_from(
         &self,
-        s: &State,
+        src: Option<&State>,
+        s: &mut State,
         mat: &Material,
         t: f64,
-        out: &mut State,
         w: &mut Work,
     ) -> usize {
         let dt = self.config.dt;
-        let n = s.len();
-        w.bins = Bins::new(&self.grid, &s.x);
-        w.f_tmp.resize(n, DMat3::ZERO);
-        w.tau.resize(n, DMat3::ZERO);
-        out.f.resize(n, DMat3::ZERO);
-        out.x.resize(n, DVec3::ZERO);
-        out.v.resize(n, DVec3::ZERO);
-        out.c.resize(n, DMat3::ZERO);
         let model = &self.model;
-        w.f_tmp
-            .par_iter_mut()
-            .zip(w.tau.par_iter_mut())
-            .zip(out.f.par_iter_mut())
-            .enumerate()
-            .for_each(|(p, ((ft, tau), fo))| {
-                *ft = model.predict(&s.c[p], &s.f[p], dt);
-                let (f_new, t_new) = model.update(ft, &s.c[p], mat.mu[p], mat.lam[p], dt);
-                *fo = f_new;
-                *tau = t_new;
-            });
-        w.extra = extra_momentum(&self.config.forces, n, t, dt);
+        let n = s.len();
+        w.tau.resize(n, DMat3::ZERO);
+        {
+            let (c_old, f_old) = match src {
+                Some(src) => (&src.c, Some(&src.f)),
+                None => (&s.c, None),
+            };
+            w.non_finite = s
+                .f
+                .par_iter_mut()
+                .zip(w.tau.par_iter_mut())
+                .enumerate()
+                .map(|(p, (f, tau))| {
+                    let f0 = f_old.map_or(*f, |fo| fo[p]);
+                    let ft = model.predict(&c_old[p], &f0, dt);
+                    let (f_new, t_new) = model.update(&ft, &c_old[p], mat.mu[p], mat.lam[p], dt);
+                    *f = f_new;
+                    *tau = t_new;
+                    !f_new.is_finite()
+                })
+                .reduce(|| false, |a, b| a | b);
+        }
+        let x_old = match src {
+            Some(src) => {
+                self.to_grid(src, mat, t, w);
+                Some(src.x.as_slice())
+            }
+            None => {
+                self.to_grid(s, mat, t, w);
+                None
+            }
+        };
+        let State { x, v, c, .. } = s;
+        let (held, bad) = g2p(&self.grid, &w.vgrid, dt, x_old, x, v, c);
+        w.non_finite |= bad;
+        held
+    }
+
+    /// Kirchhoff stress τ of every particle into `w.tau` (steps 1–4 without writing `F`).
+    pub(crate) fn stress(&self, s: &State, mat: &Material, w: &mut Work) {
+        let dt = self.config.dt;
+        let model = &self.model;
+        w.tau.resize(s.len(), DMat3::ZERO);
+        w.tau.par_iter_mut().enumerate().for_each(|(p, tau)| {
+            let ft = model.predict(&s.c[p], &s.f[p], dt);
+            *tau = model.update(&ft, &s.c[p], mat.mu[p], mat.lam[p], dt).1;
+        });
+    }
+
+    /// Steps 5–6 given `w.tau`: binning, P2G and the grid update into `w.vgrid`.
+    pub(crate) fn to_grid(&self, s: &State, mat: &Material, t: f64, w: &mut Work) {
+        let dt = self.config.dt;
+        w.bins.rebuild(&self.grid, &s.x);
+        w.extra = extra_momentum(&self.config.forces, s.len(), t, dt);
         let inp = P2gIn {
             x: &s.x,
             v: &s.v,
@@ -231,9 +275,6 @@ impl<M: Constitutive> Simulator<M> {
             &self.config.boundaries,
             &mut w.vgrid,
         );
-        g2p(
-            &self.grid, &w.vgrid, &s.x, dt, &mut out.x, &mut out.v, &mut out.c,
-        )
     }
 
     /// Advances `state` by `n_substeps` substeps from time `t0` (s), checking for NaN/Inf after
@@ -264,18 +305,11 @@ impl<M: Constitutive> Simulator<M> {
         rep.held += h;
         rep.max_held = h;
         let mut w = Work::default();
-        let mut next = state.clone();
         for k in 0..n_substeps {
             before(k, state);
-            let held = self.forward(
-                state,
-                mat,
-                t0 + k as f64 * self.config.dt,
-                &mut next,
-                &mut w,
-            );
-            std::mem::swap(state, &mut next);
-            if let Some((quantity, particle)) = state.first_non_finite() {
+            let held = self.forward(state, mat, t0 + k as f64 * self.config.dt, &mut w);
+            let bad = w.non_finite.then(|| state.first_non_finite()).flatten();
+            if let Some((quantity, particle)) = bad {
                 return Err(MpmError::NonFinite {
                     substep: k,
                     quantity,

@@ -1,11 +1,14 @@
 //! Checkpointed backpropagation over many substeps.
 //!
 //! The forward pass keeps the state every `every` substeps (a frame boundary); the backward pass
-//! recomputes one segment at a time in two levels (sub-checkpoints every ⌈√every⌉ substeps,
-//! then the states of one sub-segment), so memory is O((n/every + 2√every) · particles), never
-//! O(substeps · particles), for about one extra forward pass.
+//! reverses one segment at a time, recomputing states from the segment start with at most
+//! [`SEGMENT_SNAPSHOTS`] of them alive (a binomial schedule, [`super::schedule`]), so memory is
+//! O((n/every + SEGMENT_SNAPSHOTS) · particles) whatever the segment length. Short segments
+//! (≤ SEGMENT_SNAPSHOTS + 1 substeps) also keep each recomputed substep's intermediates (τ,
+//! bins, grid), so their adjoint steps skip the forward recomputation.
 
 use super::AdjointWork;
+use super::schedule::{SEGMENT_SNAPSHOTS, Schedule};
 use crate::error::MpmError;
 use crate::models::Constitutive;
 use crate::sim::{RunReport, Simulator, Work};
@@ -82,101 +85,197 @@ impl<M: Constitutive> Simulator<M> {
     /// Backpropagates through a tape. `seed(k, state_k)` returns `∂L/∂state_k` of the loss
     /// terms at substep `k` (called for `k = n_substeps` down to the start; `None` = no term).
     /// A non-finite gradient stops the pass with [`MpmError::NonFinite`] naming the substep.
+    ///
+    /// Each segment is reversed with at most [`SEGMENT_SNAPSHOTS`] recomputed states alive
+    /// besides the tape (binomial schedule, see [`super::schedule`]).
     pub fn backward(
         &self,
         tape: &Tape,
         mat: &Material,
-        mut seed: impl FnMut(usize, &State) -> Option<StateGrad>,
+        seed: impl FnMut(usize, &State) -> Option<StateGrad>,
         opts: BackwardOptions,
     ) -> Result<Gradients, MpmError> {
         let n = tape.n_substeps;
         let np = tape.final_state.len();
-        let mut g = seed(n, &tape.final_state).unwrap_or_else(|| StateGrad::zeros(np));
+        let mut seed = seed;
+        let g = seed(n, &tape.final_state).unwrap_or_else(|| StateGrad::zeros(np));
         if g.len() != np {
             return Err(MpmError::GradientMismatch(
                 "seed gradient length differs from the particle count",
             ));
         }
         let start = n - opts.truncate.unwrap_or(n).min(n);
-        let mut gmat = MaterialGrad::zeros(np);
-        let dt = self.config.dt;
-        let mut aw = AdjointWork::default();
-        let mut w = Work::default();
+        let mut rev = Reverser {
+            sim: self,
+            mat,
+            t0: tape.t0,
+            start,
+            seed,
+            g,
+            gmat: MaterialGrad::zeros(np),
+            aw: AdjointWork::default(),
+            stack: Vec::with_capacity(SEGMENT_SNAPSHOTS + 1),
+            spare: Vec::new(),
+            spare_work: Vec::new(),
+            keep: false,
+            plan: Schedule::new(tape.every.min(n.max(1)), SEGMENT_SNAPSHOTS),
+        };
         for (j, ck) in tape.checkpoints.iter().enumerate().rev() {
             let lo = j * tape.every;
             let hi = (lo + tape.every).min(n);
             if hi <= start {
                 break;
             }
-            // Two-level recomputation: first the sub-checkpoints of this segment every
-            // `sub` substeps, then the states of one sub-segment at a time, so at most
-            // about 2·√every states are alive besides the tape (not `every` of them).
-            let sub = ((hi - lo) as f64).sqrt().ceil().max(1.0) as usize;
-            let mut subs = Vec::with_capacity((hi - lo).div_ceil(sub));
-            let last_sub = lo + (hi - 1 - lo) / sub * sub;
-            let mut cur = ck.clone();
-            let mut next = ck.clone();
-            for k in lo..=last_sub {
-                if (k - lo).is_multiple_of(sub) {
-                    subs.push(cur.clone());
-                }
-                if k < last_sub {
-                    self.forward(&cur, mat, tape.t0 + k as f64 * dt, &mut next, &mut w);
-                    std::mem::swap(&mut cur, &mut next);
-                }
-            }
-            drop((cur, next));
-            for (i, sc) in subs.iter().enumerate().rev() {
-                let a = lo + i * sub;
-                let b = (a + sub).min(hi);
-                if b <= start {
-                    break;
-                }
-                let mut states = Vec::with_capacity(b - a);
-                states.push(sc.clone());
-                for k in a..b - 1 {
-                    let mut next = sc.clone();
-                    self.forward(
-                        &states[k - a],
-                        mat,
-                        tape.t0 + k as f64 * dt,
-                        &mut next,
-                        &mut w,
-                    );
-                    states.push(next);
-                }
-                for k in (a.max(start)..b).rev() {
-                    let s = &states[k - a];
-                    g = self.substep_backward_with(
-                        s,
-                        mat,
-                        tape.t0 + k as f64 * dt,
-                        &g,
-                        &mut gmat,
-                        &mut aw,
-                    );
-                    if let Some((quantity, particle)) = g.first_non_finite() {
-                        return Err(MpmError::NonFinite {
-                            substep: k,
-                            quantity,
-                            particle,
-                        });
-                    }
-                    if let Some(extra) = seed(k, s) {
-                        if extra.len() != np {
-                            return Err(MpmError::GradientMismatch(
-                                "seed gradient length differs from the particle count",
-                            ));
-                        }
-                        g.add_assign(&extra);
-                    }
-                }
-            }
+            rev.segment(ck, lo, hi)?;
         }
         Ok(Gradients {
-            state: g,
+            state: rev.g,
             start,
-            material: gmat,
+            material: rev.gmat,
         })
+    }
+}
+
+/// State of one backward pass: the running gradients and the recomputed states.
+struct Reverser<'a, M: Constitutive, S> {
+    sim: &'a Simulator<M>,
+    mat: &'a Material,
+    t0: f64,
+    start: usize,
+    seed: S,
+    g: StateGrad,
+    gmat: MaterialGrad,
+    aw: AdjointWork,
+    /// Recomputed states, innermost last.
+    stack: Vec<State>,
+    /// Released state buffers, reused instead of allocating.
+    spare: Vec<State>,
+    /// Released intermediates buffers, likewise.
+    spare_work: Vec<Work>,
+    /// Keep each recomputed substep's intermediates (segments of ≤ SEGMENT_SNAPSHOTS + 1).
+    keep: bool,
+    plan: Schedule,
+}
+
+impl<M: Constitutive, S: FnMut(usize, &State) -> Option<StateGrad>> Reverser<'_, M, S> {
+    /// Reverses substeps `lo..hi` (only those `≥ start`) from the checkpoint at `lo`.
+    fn segment(&mut self, ck: &State, lo: usize, hi: usize) -> Result<(), MpmError> {
+        debug_assert!(self.stack.is_empty());
+        let a = lo.max(self.start);
+        let free = if lo < a {
+            SEGMENT_SNAPSHOTS.max(2) - 1
+        } else {
+            SEGMENT_SNAPSHOTS
+        };
+        self.keep = hi - a <= free + 1;
+        if lo < a {
+            // Truncated: first recompute the state at `start` (one extra snapshot).
+            self.push(ck, lo, a, false);
+            let r = self.reverse(ck, a, hi, free);
+            self.pop();
+            return r;
+        }
+        self.reverse(ck, a, hi, free)
+    }
+
+    /// The state at the innermost snapshot, or the checkpoint when none is alive.
+    fn base<'s>(&'s self, ck: &'s State) -> &'s State {
+        self.stack.last().unwrap_or(ck)
+    }
+
+    /// Recomputes the state at `to` from the base (at `from`) into a new snapshot. With `keep`,
+    /// returns the intermediates of the last substep (those of substep `from` when
+    /// `to = from + 1`, which its adjoint step then need not recompute).
+    fn push(&mut self, ck: &State, from: usize, to: usize, keep: bool) -> Option<Work> {
+        let mut buf = self.spare.pop().unwrap_or_else(|| self.base(ck).clone());
+        let mut w = if keep {
+            self.spare_work.pop().unwrap_or_default()
+        } else {
+            std::mem::take(&mut self.aw.fwd)
+        };
+        let dt = self.sim.config.dt;
+        // The first substep reads the base and writes the new buffer (no copy), the rest run
+        // in place.
+        let base = self.stack.last().unwrap_or(ck);
+        self.sim.forward_from(
+            Some(base),
+            &mut buf,
+            self.mat,
+            self.t0 + from as f64 * dt,
+            &mut w,
+        );
+        for k in from + 1..to {
+            self.sim
+                .forward(&mut buf, self.mat, self.t0 + k as f64 * dt, &mut w);
+        }
+        self.stack.push(buf);
+        if keep {
+            Some(w)
+        } else {
+            self.aw.fwd = w;
+            None
+        }
+    }
+
+    fn pop(&mut self) {
+        if let Some(s) = self.stack.pop() {
+            self.spare.push(s);
+        }
+    }
+
+    /// Reverses substeps `a..b` whose start state is the base, with `free ≥ 1` snapshots left:
+    /// recompute the state at the planned split `m`, reverse `m..b` with one snapshot fewer,
+    /// release it, then continue with `a..m` (a loop, so recursion depth ≤ `free`).
+    ///
+    /// When the whole segment fits in the snapshots (at most SEGMENT_SNAPSHOTS + 1 substeps,
+    /// every split is one substep) the intermediates of each recomputed substep are kept too,
+    /// so only the segment's last substep is recomputed for its adjoint.
+    fn reverse(&mut self, ck: &State, a: usize, b: usize, free: usize) -> Result<(), MpmError> {
+        let keep = self.keep;
+        let mut b = b;
+        let mut kept = None;
+        while b - a > 1 {
+            let m = a + self.plan.split(b - a, free);
+            kept = self.push(ck, a, m, keep && m == a + 1);
+            let r = self.reverse(ck, m, b, free - 1);
+            self.pop();
+            r?;
+            b = m;
+        }
+        let r = self.step(ck, a, kept.as_ref());
+        self.spare_work.extend(kept);
+        r
+    }
+
+    /// Backpropagates substep `k` from its start state (the base), given its intermediates
+    /// when kept, then adds the seed at `k`.
+    fn step(&mut self, ck: &State, k: usize, kept: Option<&Work>) -> Result<(), MpmError> {
+        let s = self.stack.last().unwrap_or(ck);
+        let t = self.t0 + k as f64 * self.sim.config.dt;
+        let bad = self.sim.substep_backward_with(
+            s,
+            self.mat,
+            t,
+            &mut self.g,
+            &mut self.gmat,
+            &mut self.aw,
+            kept,
+        );
+        if let Some((quantity, particle)) = bad.then(|| self.g.first_non_finite()).flatten() {
+            return Err(MpmError::NonFinite {
+                substep: k,
+                quantity,
+                particle,
+            });
+        }
+        if let Some(extra) = (self.seed)(k, s) {
+            if extra.len() != self.g.len() {
+                return Err(MpmError::GradientMismatch(
+                    "seed gradient length differs from the particle count",
+                ));
+            }
+            self.g.add_assign(&extra);
+        }
+        Ok(())
     }
 }

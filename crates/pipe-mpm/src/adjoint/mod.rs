@@ -5,27 +5,30 @@ mod checkpoint;
 mod g2p;
 mod grid_update;
 mod p2g;
+mod schedule;
 
 pub use checkpoint::{BackwardOptions, Gradients, Tape};
+pub use schedule::SEGMENT_SNAPSHOTS;
 
-use glam::{DMat3, DVec3};
+use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::error::MpmError;
 use crate::models::Constitutive;
 use crate::p2g::Node;
+use crate::scatter::scatter_with;
 use crate::sim::{Simulator, Work};
 use crate::state::{FamilyGrad, Material, MaterialGrad, State, StateGrad};
 
-/// Scratch buffers of the backward pass.
+/// Scratch buffers of the backward pass (reused across substeps).
 #[derive(Debug, Default)]
 pub(crate) struct AdjointWork {
-    fwd: Work,
-    next: Option<State>,
-    gv_new: Vec<DVec3>,
-    gx_g2p: Vec<DVec3>,
+    pub(crate) fwd: Work,
     g_vgrid: Vec<DVec3>,
     g_nodes: Vec<Node>,
+    /// `(x̄, v̄)` after the G2P adjoint, in bin order.
+    g2p: Vec<(DVec3, DVec3)>,
+    family: Vec<FamilyGrad>,
 }
 
 impl<M: Constitutive> Simulator<M> {
@@ -65,41 +68,82 @@ impl<M: Constitutive> Simulator<M> {
                 "material gradient length differs from the particle count",
             ));
         }
-        let mut aw = AdjointWork::default();
-        Ok(self.substep_backward_with(s, mat, t, g_next, gmat, &mut aw))
+        let mut g = g_next.clone();
+        self.substep_backward_with(s, mat, t, &mut g, gmat, &mut AdjointWork::default(), None);
+        Ok(g)
     }
 
+    /// [`Self::substep_backward`] in place: `g` holds `∂L/∂s_{k+1}` on entry and `∂L/∂s_k` on
+    /// return. Every pass reads only its own particle's entries of `g` after the previous pass
+    /// consumed the others, so no second gradient state is needed. `kept` = this substep's
+    /// forward intermediates when the caller still has them (else they are recomputed).
+    /// Returns whether some entry of the new `g` is NaN/Inf.
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn substep_backward_with(
         &self,
         s: &State,
         mat: &Material,
         t: f64,
-        g_next: &StateGrad,
+        g: &mut StateGrad,
         gmat: &mut MaterialGrad,
         aw: &mut AdjointWork,
-    ) -> StateGrad {
+        kept: Option<&Work>,
+    ) -> bool {
         let dt = self.config.dt;
-        let n = s.len();
         let grid = &self.grid;
-        // Recompute the forward substep and its intermediates.
-        let mut next = aw.next.take().unwrap_or_else(|| s.clone());
-        self.forward(s, mat, t, &mut next, &mut aw.fwd);
-        let w = &aw.fwd;
-        // G2P and the position update x' = hold(x + dt v').
-        let (gv_new, gx_g2p): (Vec<DVec3>, Vec<DVec3>) = (0..n)
-            .into_par_iter()
-            .map(|p| {
-                let unclamped = s.x[p] + dt * next.v[p];
-                let mask = DVec3::select(unclamped.cmpeq(next.x[p]), DVec3::ONE, DVec3::ZERO);
-                let gxn = g_next.x[p] * mask;
-                let gv = g_next.v[p] + dt * gxn;
-                let gx = gxn + g2p::position_grad(grid, &w.vgrid, s.x[p], gv, &g_next.c[p]);
-                (gv, gx)
-            })
-            .unzip();
-        aw.gv_new = gv_new;
-        aw.gx_g2p = gx_g2p;
-        g2p::scatter_node_grads(grid, &w.bins, &s.x, &aw.gv_new, &g_next.c, &mut aw.g_vgrid);
+        // Recompute τ, P2G and the grid update unless kept; G2P is folded into its adjoint.
+        let w = match kept {
+            Some(w) => w,
+            None => {
+                self.stress(s, mat, &mut aw.fwd);
+                self.to_grid(s, mat, t, &mut aw.fwd);
+                &aw.fwd
+            }
+        };
+        let v_max = w
+            .vgrid
+            .par_iter()
+            .map(|v| v.abs().max_element())
+            .reduce(|| 0.0, f64::max);
+        let scale = grid.domain.lo.abs().max(grid.domain.hi.abs()).max_element();
+        let reach = dt * v_max * (1.0 + 1e-9) + 1e-12 * (1.0 + scale);
+        // G2P and the position update x' = hold(x + dt v'): x̄' passes where x' was not held,
+        // v̄' = v̄ + dt x̄'; x̄ gets the weight and offset terms; the node gradients v̄_i are
+        // scattered in the same pass. Outputs go to `aw.g2p` in bin order, then to g.x, g.v.
+        aw.g_vgrid.clear();
+        aw.g_vgrid.resize(grid.len(), DVec3::ZERO);
+        aw.g2p.resize(s.len(), (DVec3::ZERO, DVec3::ZERO));
+        {
+            let (gx_in, gv_in, gc_in) = (&g.x, &g.v, &g.c);
+            scatter_with(
+                grid,
+                &w.bins,
+                &mut aw.g_vgrid,
+                &mut aw.g2p,
+                |p, o, chunk, first| {
+                    let x = s.x[p];
+                    // |v'| ≤ max |v_i| (convex weights): far enough from the walls x' was not
+                    // held (mask 1); else redo G2P's exact sum to decide.
+                    let margin = (x - grid.domain.lo).min(grid.domain.hi - x).min_element();
+                    let mask = if margin > reach {
+                        DVec3::ONE
+                    } else {
+                        let unclamped = x + dt * crate::g2p::gather(grid, &w.vgrid, x).0;
+                        let held = unclamped.clamp(grid.domain.lo, grid.domain.hi);
+                        DVec3::select(unclamped.cmpeq(held), DVec3::ONE, DVec3::ZERO)
+                    };
+                    let gxn = gx_in[p] * mask;
+                    let gv = gv_in[p] + dt * gxn;
+                    let gx_w =
+                        g2p::g2p_adjoint_particle(grid, &w.vgrid, chunk, first, x, gv, &gc_in[p]);
+                    *o = (gxn + gx_w, gv);
+                },
+            );
+        }
+        for (&p, &(gx, gv)) in w.bins.order.iter().zip(&aw.g2p) {
+            g.x[p as usize] = gx;
+            g.v[p as usize] = gv;
+        }
         grid_update::grid_update_adjoint(
             grid,
             &w.nodes,
@@ -111,13 +155,26 @@ impl<M: Constitutive> Simulator<M> {
         );
         // P2G, constitutive model and strain prediction, per particle.
         let model = &self.model;
-        let per: Vec<(DVec3, DVec3, DMat3, DMat3, [f64; 4], FamilyGrad)> = (0..n)
+        let g_nodes = &aw.g_nodes;
+        aw.family.resize(s.len(), FamilyGrad::default());
+        let non_finite = (
+            g.x.par_iter_mut(),
+            g.v.par_iter_mut(),
+            g.c.par_iter_mut(),
+            g.f.par_iter_mut(),
+            gmat.mass.par_iter_mut(),
+            gmat.volume.par_iter_mut(),
+            gmat.mu.par_iter_mut(),
+            gmat.lam.par_iter_mut(),
+            aw.family.par_iter_mut(),
+        )
             .into_par_iter()
-            .map(|p| {
+            .enumerate()
+            .map(|(p, (gx, gv, gc, gf, gmass, gvol, gmu, glam, gfam))| {
                 let extra = w.extra.as_ref().map_or(DVec3::ZERO, |e| e[p]);
                 let pg = p2g::p2g_adjoint_particle(
                     grid,
-                    &aw.g_nodes,
+                    g_nodes,
                     dt,
                     s.x[p],
                     s.v[p],
@@ -127,39 +184,24 @@ impl<M: Constitutive> Simulator<M> {
                     mat.volume[p],
                     extra,
                 );
-                let mg = model.update_adjoint(
-                    &w.f_tmp[p],
-                    &s.c[p],
-                    mat.mu[p],
-                    mat.lam[p],
-                    dt,
-                    &g_next.f[p],
-                    &pg.tau,
-                );
-                let (gc_pred, gf) = model.predict_adjoint(&s.c[p], &s.f[p], dt, &mg.f_tmp);
-                (
-                    aw.gx_g2p[p] + pg.x,
-                    pg.v,
-                    pg.c + mg.c + gc_pred,
-                    gf,
-                    [pg.mass, pg.volume, mg.mu, mg.lam],
-                    mg.family,
-                )
+                let f_tmp = model.predict(&s.c[p], &s.f[p], dt);
+                let mg =
+                    model.update_adjoint(&f_tmp, &s.c[p], mat.mu[p], mat.lam[p], dt, gf, &pg.tau);
+                let (gc_pred, gf_new) = model.predict_adjoint(&s.c[p], &s.f[p], dt, &mg.f_tmp);
+                *gx += pg.x;
+                *gv = pg.v;
+                *gc = pg.c + mg.c + gc_pred;
+                *gf = gf_new;
+                *gmass += pg.mass;
+                *gvol += pg.volume;
+                *gmu += mg.mu;
+                *glam += mg.lam;
+                *gfam = mg.family;
+                !(gx.is_finite() && gv.is_finite() && gc.is_finite() && gf.is_finite())
             })
-            .collect();
-        let mut g = StateGrad::zeros(n);
-        for (p, (gx, gv, gc, gf, m4, fam)) in per.into_iter().enumerate() {
-            g.x[p] = gx;
-            g.v[p] = gv;
-            g.c[p] = gc;
-            g.f[p] = gf;
-            gmat.mass[p] += m4[0];
-            gmat.volume[p] += m4[1];
-            gmat.mu[p] += m4[2];
-            gmat.lam[p] += m4[3];
-            gmat.family = gmat.family + fam;
-        }
-        aw.next = Some(next);
-        g
+            .reduce(|| false, |a, b| a | b);
+        // Family gradients are summed in particle order (bit-identical for any thread count).
+        gmat.family = aw.family.iter().fold(gmat.family, |acc, &f| acc + f);
+        non_finite
     }
 }
