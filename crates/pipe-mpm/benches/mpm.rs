@@ -178,9 +178,16 @@ fn scene<M: Constitutive>(model: M, n: usize, g: usize) -> (Simulator<M>, State,
         0.5 - side / 2.0 + 0.1 * (1.0 - side),
         0.5 - side / 2.0,
     );
-    let x = (0..n)
+    let mut x: Vec<DVec3> = (0..n)
         .map(|_| lo + DVec3::new(r(), r(), r()) * side)
         .collect();
+    if std::env::var("MPM_SORTED").is_ok() {
+        let key = |p: &DVec3| {
+            let c = (*p * g as f64).floor();
+            (c.x as usize * (g + 1) + c.y as usize) * (g + 1) + c.z as usize
+        };
+        x.sort_by_key(key);
+    }
     let vol = side * side * side / n as f64; // = dx³/8 unless the cube was clamped
     let mat = Material::from_e_nu(n, vol, 1.0, 1e3, 0.2).unwrap();
     let mut cfg = SimConfig::new(

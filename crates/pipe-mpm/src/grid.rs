@@ -169,7 +169,7 @@ impl GridSpec {
     }
 
     /// Stencil of a particle at `x` (m); `x` must lie in the domain.
-    #[inline]
+    #[inline(always)]
     pub fn stencil(&self, x: DVec3) -> Stencil {
         let xs = x * self.inv_dx;
         let base = floor3(xs - DVec3::splat(0.5));
@@ -199,7 +199,7 @@ impl GridSpec {
     }
 
     /// Clamp a position into the particle domain; returns `true` if it moved.
-    #[inline]
+    #[inline(always)]
     pub fn hold(&self, x: &mut DVec3) -> bool {
         let c = x.clamp(self.domain.lo, self.domain.hi);
         let moved = c != *x;

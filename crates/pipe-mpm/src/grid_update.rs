@@ -14,6 +14,30 @@ pub fn mass_threshold(dx: f64) -> f64 {
     1e-8 * dx * dx * dx
 }
 
+/// Node velocity (m/s), padded to four `f64` lanes so that one node is one vector.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[repr(C, align(32))]
+pub struct NodeVel {
+    /// Velocity (m/s).
+    pub v: DVec3,
+    /// Always 0.
+    pad: f64,
+}
+
+impl NodeVel {
+    /// A node velocity (m/s).
+    #[inline(always)]
+    pub fn new(v: DVec3) -> Self {
+        Self { v, pad: 0.0 }
+    }
+
+    /// The four lanes `(vx, vy, vz, 0)`.
+    #[inline(always)]
+    pub(crate) fn lanes(&self) -> [f64; 4] {
+        [self.v.x, self.v.y, self.v.z, self.pad]
+    }
+}
+
 /// Node velocities (m/s) after gravity `g` (m/s²) and the boundary conditions.
 pub(crate) fn grid_update(
     grid: &GridSpec,
@@ -21,7 +45,7 @@ pub(crate) fn grid_update(
     dt: f64,
     g: DVec3,
     bc: &Boundaries,
-    out: &mut Vec<DVec3>,
+    out: &mut Vec<NodeVel>,
 ) {
     let thr = mass_threshold(grid.dx);
     nodes
@@ -30,9 +54,9 @@ pub(crate) fn grid_update(
         .map(|(i, n)| {
             if n.m > thr {
                 let v = n.mv / n.m + dt * g;
-                bc.apply(grid, grid.node_pos(grid.unlinear(i)), v)
+                NodeVel::new(bc.apply(grid, grid.node_pos(grid.unlinear(i)), v))
             } else {
-                DVec3::ZERO
+                NodeVel::default()
             }
         })
         .collect_into_vec(out);

@@ -6,10 +6,13 @@
 use glam::{DMat3, DVec3};
 
 use crate::grid::GridSpec;
-use crate::scatter::{Bins, scatter};
+use crate::isa::Isa;
+use crate::scatter::{Bins, scatter_slabs};
 
-/// Grid node accumulator: momentum (kg·m/s) and mass (kg).
+/// Grid node accumulator: momentum (kg·m/s) and mass (kg), laid out as four consecutive `f64`
+/// so that one node is one 4-lane vector.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[repr(C, align(32))]
 pub struct Node {
     /// Momentum (kg·m/s).
     pub mv: DVec3,
@@ -31,7 +34,7 @@ pub(crate) struct P2gIn<'a> {
 }
 
 /// The APIC affine matrix `A = −dt V (4/dx²) τ + m C`.
-#[inline]
+#[inline(always)]
 pub(crate) fn affine(
     grid: &GridSpec,
     dt: f64,
@@ -44,32 +47,101 @@ pub(crate) fn affine(
     *tau * (-dt * volume * d_inv) + *c * mass
 }
 
-/// Scatters particles into `nodes` (cleared first). `mom + A dpos` is built axis by axis
-/// along the separable stencil: `(mom + A₀ px) + A₁ py` per row, `+ A₂ pz` per node.
+/// Scatters particles into `nodes` (cleared first), one slab at a time with the best
+/// instruction set ([`Isa`]).
 pub(crate) fn p2g(grid: &GridSpec, bins: &Bins, inp: P2gIn<'_>, nodes: &mut Vec<Node>) {
     nodes.clear();
     nodes.resize(grid.len(), Node::default());
-    scatter(grid, bins, nodes, |p, chunk, first| {
-        let st = grid.stencil(inp.x[p]);
-        let d = st.offsets(grid.dx);
-        let m = inp.mass[p];
-        let a = affine(grid, inp.dt, inp.volume[p], m, &inp.tau[p], &inp.c[p]);
-        let mut mom = inp.v[p] * m;
-        if let Some(e) = inp.extra {
-            mom += e[p];
+    let isa = Isa::detect();
+    scatter_slabs(grid, bins, nodes, |ps, chunk, first| {
+        isa.run(Slab {
+            grid,
+            inp: &inp,
+            ps,
+            chunk,
+            first,
+        })
+    });
+}
+
+/// P2G of one slab's particles into its grid chunk.
+struct Slab<'a> {
+    grid: &'a GridSpec,
+    inp: &'a P2gIn<'a>,
+    ps: &'a [u32],
+    chunk: &'a mut [Node],
+    first: usize,
+}
+
+impl pulp::NullaryFnOnce for Slab<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn call(self) {
+        let Slab {
+            grid,
+            inp,
+            ps,
+            chunk,
+            first,
+        } = self;
+        for &p in ps {
+            let p = p as usize;
+            let m = inp.mass[p];
+            let a = affine(grid, inp.dt, inp.volume[p], m, &inp.tau[p], &inp.c[p]);
+            let mut mom = inp.v[p] * m;
+            if let Some(e) = inp.extra {
+                mom += e[p];
+            }
+            scatter_particle(grid, chunk, first, inp.x[p], mom, m, &a);
         }
-        for i in 0..3 {
-            let q_x = mom + a.x_axis * d[i].x;
-            for j in 0..3 {
-                let q_xy = q_x + a.y_axis * d[j].y;
-                let wxy = st.w[i].x * st.w[j].y;
-                let row = grid.row_mut(chunk, first, st.local, i, j);
-                for (k, n) in row.iter_mut().enumerate() {
-                    let w = wxy * st.w[k].z;
-                    n.mv += w * (q_xy + a.z_axis * d[k].z);
-                    n.m += w * m;
+    }
+}
+
+/// Adds one particle's `w (mom + A dpos, m)` to its 27 nodes. Along the separable stencil,
+/// `q = mom + A₀ px + A₁ py` per row and node `k` of the row gets
+/// `w_k (q, m) + (w_k pz_k) (A₂, 0)`: two fused multiply-adds per lane.
+#[inline(always)]
+fn scatter_particle(
+    grid: &GridSpec,
+    chunk: &mut [Node],
+    first: usize,
+    x: DVec3,
+    mom: DVec3,
+    m: f64,
+    a: &DMat3,
+) {
+    let st = grid.stencil(x);
+    let d = st.offsets(grid.dx);
+    let wz = [st.w[0].z, st.w[1].z, st.w[2].z];
+    let wzpz = [wz[0] * d[0].z, wz[1] * d[1].z, wz[2] * d[2].z];
+    let az = [a.z_axis.x, a.z_axis.y, a.z_axis.z, 0.0];
+    for i in 0..3 {
+        let q_x = fma3(a.x_axis, d[i].x, mom);
+        for (j, (dj, wj)) in d.iter().zip(st.w).enumerate() {
+            let q = fma3(a.y_axis, dj.y, q_x);
+            let q = [q.x, q.y, q.z, m];
+            let wxy = st.w[i].x * wj.y;
+            let row = grid.row_mut(chunk, first, st.local, i, j);
+            for (k, n) in row.iter_mut().enumerate() {
+                let (w, wp) = (wxy * wz[k], wxy * wzpz[k]);
+                let mut l = [n.mv.x, n.mv.y, n.mv.z, n.m];
+                for c in 0..4 {
+                    l[c] = wp.mul_add(az[c], w.mul_add(q[c], l[c]));
                 }
+                n.mv = DVec3::new(l[0], l[1], l[2]);
+                n.m = l[3];
             }
         }
-    });
+    }
+}
+
+/// `a s + b`, lane by lane, fused.
+#[inline(always)]
+pub(crate) fn fma3(a: DVec3, s: f64, b: DVec3) -> DVec3 {
+    DVec3::new(
+        a.x.mul_add(s, b.x),
+        a.y.mul_add(s, b.y),
+        a.z.mul_add(s, b.z),
+    )
 }

@@ -77,23 +77,31 @@ where
     T: Send,
     F: Fn(usize, &mut [T], usize) + Sync,
 {
+    scatter_slabs(grid, bins, out, |ps, c, first| {
+        for &p in ps {
+            f(p as usize, c, first);
+        }
+    });
+}
+
+/// [`scatter`] one slab at a time: `f(particles, chunk, first_layer)` gets a slab's particles
+/// (in the order they must be processed) and the grid chunk they write.
+pub fn scatter_slabs<T, F>(grid: &GridSpec, bins: &Bins, out: &mut [T], f: F)
+where
+    T: Send,
+    F: Fn(&[u32], &mut [T], usize) + Sync,
+{
     let layer = grid.layer();
     debug_assert_eq!(out.len(), grid.len());
     let chunk = 6 * layer;
-    out.par_chunks_mut(chunk).enumerate().for_each(|(k, c)| {
-        for &p in bins.slab(2 * k) {
-            f(p as usize, c, 6 * k);
-        }
-    });
+    out.par_chunks_mut(chunk)
+        .enumerate()
+        .for_each(|(k, c)| f(bins.slab(2 * k), c, 6 * k));
     if out.len() > 3 * layer {
         out[3 * layer..]
             .par_chunks_mut(chunk)
             .enumerate()
-            .for_each(|(k, c)| {
-                for &p in bins.slab(2 * k + 1) {
-                    f(p as usize, c, 6 * k + 3);
-                }
-            });
+            .for_each(|(k, c)| f(bins.slab(2 * k + 1), c, 6 * k + 3));
     }
 }
 

@@ -11,8 +11,9 @@ use crate::error::MpmError;
 use crate::forces::{ParticleForce, extra_momentum};
 use crate::g2p::g2p;
 use crate::grid::{Aabb, GridSpec};
-use crate::grid_update::grid_update;
+use crate::grid_update::{NodeVel, grid_update};
 use crate::models::Constitutive;
+use crate::order::Order;
 use crate::p2g::{Node, P2gIn, p2g};
 use crate::scatter::Bins;
 use crate::state::{Material, State};
@@ -74,7 +75,7 @@ pub(crate) struct Work {
     pub bins: Bins,
     pub tau: Vec<DMat3>,
     pub nodes: Vec<Node>,
-    pub vgrid: Vec<DVec3>,
+    pub vgrid: Vec<NodeVel>,
     pub extra: Option<Vec<DVec3>>,
     /// Set by [`Simulator::forward`] when some new `x, v, C` or `F` is NaN/Inf (checked in the
     /// kernels, so the full scan runs only then).
@@ -287,23 +288,74 @@ impl<M: Constitutive> Simulator<M> {
         n_substeps: usize,
     ) -> Result<RunReport, MpmError> {
         self.advance(state, mat, t0, n_substeps, |_, _| {})
+            .map(|(rep, _)| rep)
     }
 
-    /// The substep loop shared by [`Self::run`] and [`Self::forward_tape`]: `before(k, state_k)`
-    /// sees the state at the start of every substep `k`.
+    /// The simulator seen in slot order `o`: forces renumbered to slots.
+    pub(crate) fn sorted(&self, o: &Order) -> Self {
+        let mut sim = self.clone();
+        sim.config.forces = o.sort_forces(&self.config.forces);
+        sim
+    }
+
+    /// The substep loop shared by [`Self::run`] and [`Self::forward_tape`]. The particles are
+    /// put in spatial order ([`Order`]) for the loop and handed back in the caller's order;
+    /// `before(k, state_k)` sees the state at the start of every substep `k` in that slot
+    /// order, which is returned (`None`: the caller's order was already spatial).
     pub(crate) fn advance(
         &self,
         state: &mut State,
         mat: &Material,
         t0: f64,
         n_substeps: usize,
-        mut before: impl FnMut(usize, &State),
-    ) -> Result<RunReport, MpmError> {
+        before: impl FnMut(usize, &State),
+    ) -> Result<(RunReport, Option<Order>), MpmError> {
         self.validate(state, mat)?;
         let mut rep = RunReport::default();
         let h = self.hold_all(state);
         rep.held += h;
         rep.max_held = h;
+        let order = Order::by_cell(&self.grid, &state.x);
+        let done = match &order {
+            None => self.substeps(state, mat, t0, n_substeps, &mut rep, before),
+            Some(o) => {
+                let mut s = o.sort_state(state);
+                let done = self.sorted(o).substeps(
+                    &mut s,
+                    &o.sort_material(mat),
+                    t0,
+                    n_substeps,
+                    &mut rep,
+                    before,
+                );
+                o.unsort_state_into(&s, state);
+                // Name the first offending particle in the caller's order.
+                done.map_err(|e| match e {
+                    MpmError::NonFinite { substep, .. } => {
+                        let (quantity, particle) = state.first_non_finite().unwrap_or(("x", 0));
+                        MpmError::NonFinite {
+                            substep,
+                            quantity,
+                            particle,
+                        }
+                    }
+                    e => e,
+                })
+            }
+        };
+        done.map(|()| (rep, order))
+    }
+
+    /// `n_substeps` substeps of `state` (already validated and held), counted into `rep`.
+    fn substeps(
+        &self,
+        state: &mut State,
+        mat: &Material,
+        t0: f64,
+        n_substeps: usize,
+        rep: &mut RunReport,
+        mut before: impl FnMut(usize, &State),
+    ) -> Result<(), MpmError> {
         let mut w = Work::default();
         for k in 0..n_substeps {
             before(k, state);
@@ -320,6 +372,6 @@ impl<M: Constitutive> Simulator<M> {
             rep.held += held;
             rep.max_held = rep.max_held.max(held);
         }
-        Ok(rep)
+        Ok(())
     }
 }

@@ -5,7 +5,7 @@
 
 use glam::{DMat3, DVec3};
 
-use crate::math::{el, outer};
+use crate::math::{cofactor, ddot, el, max_abs, outer};
 
 /// Result of [`svd3`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -106,6 +106,146 @@ pub fn svd3(f: &DMat3) -> Svd {
         s: DVec3::from_array(sig),
         v: vm,
     }
+}
+
+/// Smallest `det X₀` (`X₀ = F √3/‖F‖_F`, so `Σσ² = 3`) that [`polar_rotation`] iterates on;
+/// flatter, inverted or degenerate `F` go through [`svd3`]. As `det X₀ ≤ √3 (σ₂ + σ₃)²/4`, it
+/// keeps `σ₂ + σ₃ > 0.015`: `R`, whose sensitivity is `∝ 1/(σ₂ + σ₃)`, stays well conditioned.
+const POLAR_MIN_DET: f64 = 1e-4;
+
+/// Polynomial phase once `‖XᵀX − I‖_F² <` this: every `σ² − 1 ∈ (−1, 1)`, inside the
+/// convergence interval `(−1, 4/3)` of the cubic iteration.
+const POLAR_NEAR: f64 = 1.0;
+
+/// The cubic iteration stops after the step taken with `‖XᵀX − I‖_F² ≤` this: the error left is
+/// about `(5/16)‖XᵀX − I‖³ ≤ 3e-16`.
+const POLAR_TOL2: f64 = 1e-10;
+
+/// Caps on Newton steps (at most 4 seen above [`POLAR_MIN_DET`]) and cubic steps (≤ 7 from
+/// [`POLAR_NEAR`]); past them [`svd3`] decides.
+const POLAR_MAX_NEWTON: usize = 20;
+const POLAR_MAX_CUBIC: usize = 12;
+
+/// `‖F‖_F²` range in which [`polar_rotation`] uses `F` as is (no over/underflow in `cof F`);
+/// outside it `F` is first scaled by a power of two.
+const POLAR_SAFE_NORM2: (f64, f64) = (1e-200, 1e200);
+
+/// `2^e` for `-1022 ≤ e ≤ 1023`.
+#[inline]
+fn pow2(e: i32) -> f64 {
+    f64::from_bits(((1023 + e) as u64) << 52)
+}
+
+/// `F · 2^k` with its largest |entry| in [1, 2) (exact), or `None` for a zero or non-finite `F`.
+fn normalized(f: &DMat3) -> Option<DMat3> {
+    if !f.is_finite() {
+        return None;
+    }
+    let mut m = max_abs(f);
+    if m == 0.0 {
+        return None;
+    }
+    let mut g = *f;
+    // Bring extreme (incl. subnormal) scales into range first, so 2^-e below stays normal.
+    if m < pow2(-1000) {
+        g *= pow2(600);
+        m *= pow2(600);
+    } else if m >= pow2(1000) {
+        g *= pow2(-600);
+        m *= pow2(-600);
+    }
+    let e = ((m.to_bits() >> 52) & 0x7ff) as i32 - 1023;
+    Some(g * pow2(-e))
+}
+
+/// `R = U Vᵀ` of [`svd3`]'s rotation-variant decomposition (the fallback, kept out of line).
+#[cold]
+#[inline(never)]
+fn rotation_from_svd(f: &DMat3) -> DMat3 {
+    let d = svd3(f);
+    d.u * d.v.transpose()
+}
+
+/// One scaled Newton step `½(ζX + ζ⁻¹X⁻ᵀ)`, `X⁻ᵀ = cof X / det X`, with the Frobenius
+/// scaling `ζ = (‖X⁻¹‖_F/‖X‖_F)^{1/2}` (Higham 1986, §3); `None` unless `det X > 0`.
+#[inline]
+fn scaled_newton_step(x: &DMat3) -> Option<DMat3> {
+    let cof = cofactor(x);
+    let det = x.x_axis.dot(cof.x_axis);
+    if det <= 0.0 {
+        return None;
+    }
+    let zeta = ((ddot(&cof, &cof) / ddot(x, x)).sqrt().sqrt() / det).sqrt();
+    Some(*x * (0.5 * zeta) + cof * (0.5 / (zeta * det)))
+}
+
+/// `XᵀX − I` and its squared Frobenius norm.
+#[inline]
+fn orthogonality_defect(x: &DMat3) -> (DMat3, f64) {
+    let e = x.transpose() * *x - DMat3::IDENTITY;
+    (e, ddot(&e, &e))
+}
+
+/// Rotation `R` of the polar decomposition `F = R S`, equal to `U Vᵀ` of [`svd3`] (a proper
+/// rotation, also when `det F ≤ 0`) to rounding, several times faster.
+///
+/// For `det F` comfortably positive, with `X₀ = F √3/‖F‖_F` and `E = XᵀX − I`:
+/// * while `‖E‖_F ≥ 1`, scaled Newton steps `X ← ½(ζX + ζ⁻¹X⁻ᵀ)` (Higham 1986, "Computing the
+///   polar decomposition — with applications"), quadratic from any non-singular `X`;
+/// * then the division-free cubic iteration `X ← X (I − ½E + ⅜E²)`, the second-order Taylor
+///   polynomial of `(I + E)^{-1/2}` (Kovarik 1970; Björck & Bowie 1971), for which
+///   `E' = ⅝E³ + O(E⁴)`.
+///
+/// Both act on the singular values only, so the limit is `U Vᵀ`. Inverted, near-singular,
+/// zero or non-finite `F` (and non-convergence, never seen) use [`svd3`] (on `F` scaled by a
+/// power of two when `‖F‖` is extreme), hence exactly `svd3(F)`'s rotation in the ordinary
+/// floating-point range.
+#[inline]
+pub fn polar_rotation(f: &DMat3) -> DMat3 {
+    let n2 = ddot(f, f);
+    if n2 > POLAR_SAFE_NORM2.0 && n2 < POLAR_SAFE_NORM2.1 {
+        polar_in_range(f, n2)
+    } else {
+        polar_rescaled(f)
+    }
+}
+
+/// [`polar_rotation`] for `‖F‖_F²` outside [`POLAR_SAFE_NORM2`], zero or non-finite `F`.
+#[cold]
+#[inline(never)]
+fn polar_rescaled(f: &DMat3) -> DMat3 {
+    match normalized(f) {
+        Some(g) => polar_in_range(&g, ddot(&g, &g)),
+        None => rotation_from_svd(f),
+    }
+}
+
+/// [`polar_rotation`] body for `n2 = ‖F‖_F²` in [`POLAR_SAFE_NORM2`].
+#[inline]
+fn polar_in_range(f: &DMat3, n2: f64) -> DMat3 {
+    let mut x = *f * (3.0 / n2).sqrt();
+    // F is finite here (‖F‖² < 1e200), so nothing below is NaN.
+    if x.determinant() <= POLAR_MIN_DET {
+        return rotation_from_svd(f);
+    }
+    let (mut e, mut e2) = orthogonality_defect(&x);
+    let mut newton = 0;
+    while e2 >= POLAR_NEAR {
+        match scaled_newton_step(&x) {
+            Some(next) if newton < POLAR_MAX_NEWTON => x = next,
+            _ => return rotation_from_svd(f),
+        }
+        newton += 1;
+        (e, e2) = orthogonality_defect(&x);
+    }
+    for _ in 0..POLAR_MAX_CUBIC {
+        x *= DMat3::IDENTITY - e * 0.5 + (e * e) * 0.375;
+        if e2 <= POLAR_TOL2 {
+            return x;
+        }
+        (e, e2) = orthogonality_defect(&x);
+    }
+    rotation_from_svd(f)
 }
 
 /// Smallest magnitude allowed for `σ_j² − σ_i²` in [`svd3_adjoint`] (repeated singular values).

@@ -260,7 +260,9 @@ fn newtonian_fd() {
 }
 
 /// Checkpoint interval and truncation: every interval gives bit-identical gradients, and a
-/// gradient truncated to the last `k` substeps equals a fresh run started at substep `n − k`.
+/// gradient truncated to the last `k` substeps equals a fresh run started at substep `n − k`
+/// (to rounding: the fresh run orders its particles by their cells at `n − k`, which changes
+/// the order of the grid sums).
 #[test]
 fn checkpoint_interval_and_truncation() {
     let (cfg, s0, mat, w, wm) = scene(false);
@@ -270,7 +272,7 @@ fn checkpoint_interval_and_truncation() {
     for every in [1, 4, 5, N_SUB, 100] {
         let mut s = s0.clone();
         let tape = sim.forward_tape(&mut s, &mat, 0.0, N_SUB, every).unwrap();
-        assert_eq!(tape.checkpoints.len(), N_SUB.div_ceil(every));
+        assert_eq!(tape.checkpoint_count(), N_SUB.div_ceil(every));
         let g = sim
             .backward(
                 &tape,
@@ -311,8 +313,37 @@ fn checkpoint_interval_and_truncation() {
             BackwardOptions::default(),
         )
         .unwrap();
-    assert_eq!(gt.state, g2.state);
-    assert_eq!(gt.material, g2.material);
+    let close = |a: f64, b: f64, what: &str| {
+        assert!(
+            (a - b).abs() <= 1e-10 * a.abs().max(b.abs()).max(1e-30),
+            "{what}: truncated {a:e} vs fresh run {b:e}"
+        );
+    };
+    for p in 0..s0.len() {
+        for (a, b) in gt.state.x[p]
+            .to_array()
+            .iter()
+            .zip(g2.state.x[p].to_array())
+        {
+            close(*a, b, "dL/dx");
+        }
+        for (a, b) in gt.state.v[p]
+            .to_array()
+            .iter()
+            .zip(g2.state.v[p].to_array())
+        {
+            close(*a, b, "dL/dv");
+        }
+        for (a, b) in gt.state.f[p]
+            .to_cols_array()
+            .iter()
+            .zip(g2.state.f[p].to_cols_array())
+        {
+            close(*a, b, "dL/dF");
+        }
+        close(gt.material.mu[p], g2.material.mu[p], "dL/dmu");
+        close(gt.material.lam[p], g2.material.lam[p], "dL/dlam");
+    }
 }
 
 /// Constitutive adjoints alone, including repeated singular values (F = I, F = diag(a, a, b)),

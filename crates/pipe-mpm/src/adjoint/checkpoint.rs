@@ -11,6 +11,7 @@ use super::AdjointWork;
 use super::schedule::{SEGMENT_SNAPSHOTS, Schedule};
 use crate::error::MpmError;
 use crate::models::Constitutive;
+use crate::order::Order;
 use crate::sim::{RunReport, Simulator, Work};
 use crate::state::{Material, MaterialGrad, State, StateGrad};
 
@@ -23,12 +24,31 @@ pub struct Tape {
     pub n_substeps: usize,
     /// Substeps per segment (checkpoint interval).
     pub every: usize,
-    /// `checkpoints[j]` = state at substep `j·every`.
-    pub checkpoints: Vec<State>,
-    /// State after the last substep.
-    pub final_state: State,
+    /// `checkpoints[j]` = state at substep `j·every`, in the run's slot order.
+    pub(crate) checkpoints: Vec<State>,
+    /// State after the last substep, in the run's slot order.
+    pub(crate) final_state: State,
+    /// The run's spatial order of the particles (`None`: the caller's own).
+    pub(crate) order: Option<Order>,
     /// Forward statistics.
     pub report: RunReport,
+}
+
+impl Tape {
+    /// Number of checkpoints kept (`⌈n_substeps / every⌉`).
+    pub fn checkpoint_count(&self) -> usize {
+        self.checkpoints.len()
+    }
+
+    /// Checkpoint `j` (the state at substep `j·every`) in the caller's particle order.
+    pub fn checkpoint(&self, j: usize) -> Option<State> {
+        let s = self.checkpoints.get(j)?;
+        Some(
+            self.order
+                .as_ref()
+                .map_or_else(|| s.clone(), |o| o.unsort_state(s)),
+        )
+    }
 }
 
 /// Options of [`Simulator::backward`].
@@ -67,17 +87,21 @@ impl<M: Constitutive> Simulator<M> {
             });
         }
         let mut checkpoints = Vec::with_capacity(n_substeps.div_ceil(every));
-        let report = self.advance(state, mat, t0, n_substeps, |k, s| {
+        let (report, order) = self.advance(state, mat, t0, n_substeps, |k, s| {
             if k.is_multiple_of(every) {
                 checkpoints.push(s.clone());
             }
         })?;
+        let final_state = order
+            .as_ref()
+            .map_or_else(|| state.clone(), |o| o.sort_state(state));
         Ok(Tape {
             t0,
             n_substeps,
             every,
             checkpoints,
-            final_state: state.clone(),
+            final_state,
+            order,
             report,
         })
     }
@@ -89,6 +113,52 @@ impl<M: Constitutive> Simulator<M> {
     /// Each segment is reversed with at most [`SEGMENT_SNAPSHOTS`] recomputed states alive
     /// besides the tape (binomial schedule, see [`super::schedule`]).
     pub fn backward(
+        &self,
+        tape: &Tape,
+        mat: &Material,
+        mut seed: impl FnMut(usize, &State) -> Option<StateGrad>,
+        opts: BackwardOptions,
+    ) -> Result<Gradients, MpmError> {
+        let Some(o) = &tape.order else {
+            return self.backward_in_order(tape, mat, seed, opts);
+        };
+        // The tape is in slot order: reverse there, translating the seeds and the results.
+        let np = tape.final_state.len();
+        let mut caller = tape.final_state.clone(); // reused for every seed call
+        let sorted_seed = |k: usize, s: &State| {
+            o.unsort_state_into(s, &mut caller);
+            seed(k, &caller).map(|g| {
+                if g.len() == np && g.v.len() == np && g.c.len() == np && g.f.len() == np {
+                    o.sort_grad(&g)
+                } else {
+                    g // the reverser reports the length mismatch
+                }
+            })
+        };
+        let grads =
+            self.sorted(o)
+                .backward_in_order(tape, &o.sort_material(mat), sorted_seed, opts);
+        match grads {
+            Ok(g) => Ok(Gradients {
+                state: o.unsort_grad(&g.state),
+                start: g.start,
+                material: o.unsort_material_grad(&g.material),
+            }),
+            Err(MpmError::NonFinite {
+                substep,
+                quantity,
+                particle,
+            }) => Err(MpmError::NonFinite {
+                substep,
+                quantity,
+                particle: o.original(particle),
+            }),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// [`Self::backward`] with the tape's states, `mat` and the seeds all in one order.
+    fn backward_in_order(
         &self,
         tape: &Tape,
         mat: &Material,

@@ -6,6 +6,7 @@
 use glam::{DMat3, DVec3};
 
 use crate::grid::GridSpec;
+use crate::grid_update::NodeVel;
 
 /// Adjoint of G2P for one particle, fused with the scatter of its node gradients: with
 /// `y_i = v̄_p + (4/dx²) C̄_p dpos_i` (built axis by axis along the separable stencil),
@@ -15,7 +16,7 @@ use crate::grid::GridSpec;
 #[inline]
 pub(crate) fn g2p_adjoint_particle(
     grid: &GridSpec,
-    vgrid: &[DVec3],
+    vgrid: &[NodeVel],
     chunk: &mut [DVec3],
     first: usize,
     x: DVec3,
@@ -39,8 +40,9 @@ pub(crate) fn g2p_adjoint_particle(
             let (mut v_ij, mut sw, mut sdw) = (DVec3::ZERO, 0.0, 0.0);
             for k in 0..3 {
                 let y = y_xy + gcd.z_axis * p[k].z;
-                let t = row[k].dot(y);
-                v_ij += row[k] * st.w[k].z;
+                let vk = row[k].v;
+                let t = vk.dot(y);
+                v_ij += vk * st.w[k].z;
                 sw += st.w[k].z * t;
                 sdw += st.dw[k].z * t;
                 out[k] += y * (wxy * st.w[k].z);

@@ -103,7 +103,7 @@ impl<M: Constitutive> Simulator<M> {
         let v_max = w
             .vgrid
             .par_iter()
-            .map(|v| v.abs().max_element())
+            .map(|v| v.v.abs().max_element())
             .reduce(|| 0.0, f64::max);
         let scale = grid.domain.lo.abs().max(grid.domain.hi.abs()).max_element();
         let reach = dt * v_max * (1.0 + 1e-9) + 1e-12 * (1.0 + scale);

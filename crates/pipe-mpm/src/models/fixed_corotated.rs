@@ -6,7 +6,7 @@ use glam::DMat3;
 use super::{Constitutive, ModelGrad};
 use crate::math::{cofactor, ddot, trace};
 use crate::state::FamilyGrad;
-use crate::svd::{rotation_adjoint, svd3};
+use crate::svd::{polar_rotation, rotation_adjoint, svd3};
 
 /// Fixed-corotated elastic solid.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -16,8 +16,8 @@ impl Constitutive for FixedCorotated {
     const NAME: &'static str = "fixed_corotated";
 
     fn update(&self, f: &DMat3, _c: &DMat3, mu: f64, lam: f64, _dt: f64) -> (DMat3, DMat3) {
-        let d = svd3(f);
-        let r = d.u * d.v.transpose();
+        // `R = U Vᵀ` of svd3 (rotation variant), without the SVD when det F > 0.
+        let r = polar_rotation(f);
         let j = f.determinant();
         let tau = (*f - r) * f.transpose() * (2.0 * mu) + DMat3::IDENTITY * (lam * j * (j - 1.0));
         (*f, tau)

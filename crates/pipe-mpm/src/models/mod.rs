@@ -41,7 +41,7 @@ pub struct ModelGrad {
 }
 
 /// A constitutive law: strain prediction, return mapping and Kirchhoff stress, with adjoints.
-pub trait Constitutive: Send + Sync + std::fmt::Debug {
+pub trait Constitutive: Send + Sync + std::fmt::Debug + Clone {
     /// Short name (`"neo_hookean"`, ...).
     const NAME: &'static str;
 

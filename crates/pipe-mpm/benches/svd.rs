@@ -1,0 +1,74 @@
+//! Polar rotation `R = U Vᵀ` of 3×3 deformation gradients: `svd3` (one-sided Jacobi) against
+//! `polar_rotation` (scaled Newton), on 10 000 realistic elastic `F = U diag(σ) Vᵀ` with random
+//! rotations `U`, `V` and stretches σ uniform in [0.8, 1.2] (plus a near-rest set, σ in
+//! [0.99, 1.01]). Counter = matrices, so divan's time per item is ns/matrix.
+//!
+//! `CARGO_TARGET_DIR=/work/target-bench cargo bench -p pipe-mpm --bench svd`
+
+use divan::Bencher;
+use divan::counter::ItemsCount;
+use glam::{DMat3, DQuat, DVec3};
+use pipe_mpm::svd::{polar_rotation, svd3};
+
+fn main() {
+    divan::main();
+}
+
+const N: usize = 10_000;
+
+/// SplitMix64 uniform numbers in [0, 1).
+struct Rng(u64);
+
+impl Rng {
+    fn unit(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    fn rotation(&mut self) -> DMat3 {
+        let q = [0; 4].map(|_| self.unit() - 0.5);
+        DMat3::from_quat(DQuat::from_xyzw(q[0], q[1], q[2], q[3]).normalize())
+    }
+}
+
+/// Deterministic batch: `F = U diag(σ) Vᵀ`, σ uniform in `[1 − w, 1 + w]`.
+fn batch(w: f64) -> Vec<DMat3> {
+    let mut rng = Rng(0x0DDB_A110);
+    (0..N)
+        .map(|_| {
+            let (u, v) = (rng.rotation(), rng.rotation());
+            let s =
+                DVec3::new(rng.unit(), rng.unit(), rng.unit()) * (2.0 * w) + DVec3::splat(1.0 - w);
+            u * DMat3::from_diagonal(s) * v.transpose()
+        })
+        .collect()
+}
+
+fn run(b: Bencher, w: f64, rot: fn(&DMat3) -> DMat3) {
+    let fs = batch(w);
+    let mut out = vec![DMat3::ZERO; N];
+    b.counter(ItemsCount::new(N)).bench_local(|| {
+        for (o, f) in out.iter_mut().zip(divan::black_box(&fs)) {
+            *o = rot(f);
+        }
+        divan::black_box(&out);
+    });
+}
+
+fn svd_rotation(f: &DMat3) -> DMat3 {
+    let d = svd3(f);
+    d.u * d.v.transpose()
+}
+
+#[divan::bench(args = [0.2, 0.01], sample_count = 20)]
+fn svd3_uvt(b: Bencher, w: f64) {
+    run(b, w, svd_rotation);
+}
+
+#[divan::bench(args = [0.2, 0.01], sample_count = 20)]
+fn polar_rotation_fast(b: Bencher, w: f64) {
+    run(b, w, polar_rotation);
+}

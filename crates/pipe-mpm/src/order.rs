@@ -1,0 +1,212 @@
+//! Spatial order of the particles inside a run.
+//!
+//! Callers may hand particles in any order (a random cloud, a PLY file's order). Scattering and
+//! gathering 27 grid nodes per particle in such an order touches the grid and the particle
+//! arrays at random, and cache misses then dominate the substep. A run therefore first
+//! reorders the particles by the grid cell they sit in (x-major, a stable counting sort), works
+//! on that copy, and hands the results back in the caller's order. Indices a caller sees
+//! (forces' particle sets, error reports, gradients) are always the caller's.
+//!
+//! The order is fixed for a whole run (and kept in its [`crate::Tape`]), so the forward pass
+//! and the backward pass's recomputation sum in the same order and stay bit-identical.
+
+use glam::DVec3;
+
+use crate::forces::ParticleForce;
+use crate::grid::GridSpec;
+use crate::state::{Material, MaterialGrad, State, StateGrad};
+
+/// A permutation of the particles: slot `i` holds the caller's particle `order[i]`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) struct Order {
+    order: Vec<u32>,
+    /// Inverse: the caller's particle `p` sits in slot `rank[p]`.
+    rank: Vec<u32>,
+}
+
+impl Order {
+    /// Particles sorted by the linear index of their stencil's base cell (stable, so equal
+    /// cells keep the caller's order); `None` when the caller's order is already sorted.
+    /// Positions must lie inside the grid's domain.
+    pub(crate) fn by_cell(grid: &GridSpec, x: &[DVec3]) -> Option<Self> {
+        let key: Vec<u32> = x
+            .iter()
+            .map(|&p| grid.linear(grid.stencil(p).local) as u32)
+            .collect();
+        if key.windows(2).all(|w| w[0] <= w[1]) {
+            return None;
+        }
+        // Counting sort by cell.
+        let mut start = vec![0u32; grid.len() + 1];
+        for &k in &key {
+            start[k as usize + 1] += 1;
+        }
+        for c in 0..grid.len() {
+            start[c + 1] += start[c];
+        }
+        let mut order = vec![0u32; x.len()];
+        let mut rank = vec![0u32; x.len()];
+        for (p, &k) in key.iter().enumerate() {
+            let slot = start[k as usize];
+            start[k as usize] += 1;
+            order[slot as usize] = p as u32;
+            rank[p] = slot;
+        }
+        Some(Self { order, rank })
+    }
+
+    /// The caller's index of the particle in slot `i`.
+    #[inline]
+    pub(crate) fn original(&self, i: usize) -> usize {
+        self.order[i] as usize
+    }
+
+    /// `src` (caller's order) in slot order.
+    pub(crate) fn gather<T: Copy>(&self, src: &[T]) -> Vec<T> {
+        self.order.iter().map(|&p| src[p as usize]).collect()
+    }
+
+    /// Writes `sorted` (slot order) into `dst` (caller's order).
+    pub(crate) fn scatter<T: Copy>(&self, sorted: &[T], dst: &mut [T]) {
+        for (&p, &v) in self.order.iter().zip(sorted) {
+            dst[p as usize] = v;
+        }
+    }
+
+    /// A state in slot order.
+    pub(crate) fn sort_state(&self, s: &State) -> State {
+        State {
+            x: self.gather(&s.x),
+            v: self.gather(&s.v),
+            c: self.gather(&s.c),
+            f: self.gather(&s.f),
+        }
+    }
+
+    /// Writes a slot-order state into `dst` (caller's order, same length).
+    pub(crate) fn unsort_state_into(&self, sorted: &State, dst: &mut State) {
+        self.scatter(&sorted.x, &mut dst.x);
+        self.scatter(&sorted.v, &mut dst.v);
+        self.scatter(&sorted.c, &mut dst.c);
+        self.scatter(&sorted.f, &mut dst.f);
+    }
+
+    /// A slot-order state back in the caller's order.
+    pub(crate) fn unsort_state(&self, sorted: &State) -> State {
+        let mut out = sorted.clone();
+        self.unsort_state_into(sorted, &mut out);
+        out
+    }
+
+    /// A material in slot order.
+    pub(crate) fn sort_material(&self, m: &Material) -> Material {
+        Material {
+            mass: self.gather(&m.mass),
+            volume: self.gather(&m.volume),
+            mu: self.gather(&m.mu),
+            lam: self.gather(&m.lam),
+        }
+    }
+
+    /// A gradient in slot order.
+    pub(crate) fn sort_grad(&self, g: &StateGrad) -> StateGrad {
+        StateGrad {
+            x: self.gather(&g.x),
+            v: self.gather(&g.v),
+            c: self.gather(&g.c),
+            f: self.gather(&g.f),
+        }
+    }
+
+    /// A slot-order gradient back in the caller's order.
+    pub(crate) fn unsort_grad(&self, sorted: &StateGrad) -> StateGrad {
+        let mut out = sorted.clone();
+        self.scatter(&sorted.x, &mut out.x);
+        self.scatter(&sorted.v, &mut out.v);
+        self.scatter(&sorted.c, &mut out.c);
+        self.scatter(&sorted.f, &mut out.f);
+        out
+    }
+
+    /// A slot-order material gradient back in the caller's order.
+    pub(crate) fn unsort_material_grad(&self, sorted: &MaterialGrad) -> MaterialGrad {
+        let mut out = sorted.clone();
+        self.scatter(&sorted.mass, &mut out.mass);
+        self.scatter(&sorted.volume, &mut out.volume);
+        self.scatter(&sorted.mu, &mut out.mu);
+        self.scatter(&sorted.lam, &mut out.lam);
+        out
+    }
+
+    /// Forces with their particle sets renumbered to slots.
+    pub(crate) fn sort_forces(&self, forces: &[ParticleForce]) -> Vec<ParticleForce> {
+        let remap = |ps: &[usize]| -> Vec<usize> {
+            let mut out: Vec<usize> = ps.iter().map(|&p| self.rank[p] as usize).collect();
+            // The per-particle sums do not depend on the listing order; sorted slots read the
+            // momentum buffer in memory order.
+            out.sort_unstable();
+            out
+        };
+        forces
+            .iter()
+            .map(|f| match f {
+                ParticleForce::Force {
+                    particles,
+                    force,
+                    start,
+                    end,
+                } => ParticleForce::Force {
+                    particles: remap(particles),
+                    force: *force,
+                    start: *start,
+                    end: *end,
+                },
+                ParticleForce::Impulse {
+                    particles,
+                    impulse,
+                    time,
+                } => ParticleForce::Impulse {
+                    particles: remap(particles),
+                    impulse: *impulse,
+                    time: *time,
+                },
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::Aabb;
+
+    #[test]
+    fn sorts_by_cell_stably_and_round_trips() {
+        let g = GridSpec::new(Aabb::new(DVec3::ZERO, DVec3::ONE), 0.25, 2).unwrap();
+        let x = vec![
+            DVec3::new(0.9, 0.1, 0.1),
+            DVec3::new(0.1, 0.1, 0.1),
+            DVec3::new(0.9, 0.1, 0.12),
+            DVec3::new(0.1, 0.9, 0.1),
+        ];
+        let o = Order::by_cell(&g, &x).expect("not sorted");
+        assert_eq!(o.order, vec![1, 3, 0, 2]);
+        let s = State::at_rest(x.clone());
+        let sorted = o.sort_state(&s);
+        assert_eq!(sorted.x[0], x[1]);
+        assert_eq!(o.unsort_state(&sorted), s);
+        assert_eq!(o.original(2), 0);
+        // Already sorted input needs no permutation.
+        assert!(Order::by_cell(&g, &sorted.x).is_none());
+        // Force sets follow the particles.
+        let f = o.sort_forces(&[ParticleForce::Impulse {
+            particles: vec![0, 3],
+            impulse: DVec3::X,
+            time: 0.0,
+        }]);
+        let ParticleForce::Impulse { particles, .. } = &f[0] else {
+            unreachable!()
+        };
+        assert_eq!(particles, &vec![1, 2]);
+    }
+}

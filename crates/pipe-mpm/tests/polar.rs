@@ -1,0 +1,251 @@
+//! `polar_rotation` against `svd3`'s `U Vᵀ` on random and adversarial deformation gradients.
+
+use glam::{DMat3, DQuat, DVec3};
+use pipe_mpm::math::max_abs;
+use pipe_mpm::svd::{polar_rotation, svd3};
+use pipe_mpm::{Constitutive, FixedCorotated};
+
+/// SplitMix64: small deterministic generator, no dependency.
+struct Rng(u64);
+
+impl Rng {
+    fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [0, 1).
+    fn unit(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    fn range(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.unit()
+    }
+
+    /// Log-uniform in [lo, hi].
+    fn log_range(&mut self, lo: f64, hi: f64) -> f64 {
+        (lo.ln() + (hi.ln() - lo.ln()) * self.unit()).exp()
+    }
+
+    /// Uniformly distributed rotation (normalised 4D point in the unit ball).
+    fn rotation(&mut self) -> DMat3 {
+        loop {
+            let q = [0; 4].map(|_| self.range(-1.0, 1.0));
+            let n2: f64 = q.iter().map(|v| v * v).sum();
+            if n2 > 1e-4 && n2 <= 1.0 {
+                let q = DQuat::from_xyzw(q[0], q[1], q[2], q[3]).normalize();
+                return DMat3::from_quat(q);
+            }
+        }
+    }
+
+    fn mat(&mut self, amp: f64) -> DMat3 {
+        DMat3::from_cols_array(&[0.0; 9].map(|_| self.range(-amp, amp)))
+    }
+
+    /// `U diag(s) Vᵀ` with random rotations `U`, `V`.
+    fn usv(&mut self, s: DVec3) -> DMat3 {
+        self.rotation() * DMat3::from_diagonal(s) * self.rotation().transpose()
+    }
+}
+
+fn svd_rotation(f: &DMat3) -> DMat3 {
+    let d = svd3(f);
+    d.u * d.v.transpose()
+}
+
+/// Checks `polar_rotation(f)` against `reference` (svd3's `U Vᵀ`); returns the max deviation.
+fn check(f: &DMat3, reference: &DMat3, tol: f64) -> f64 {
+    let r = polar_rotation(f);
+    let dev = max_abs(&(r - *reference));
+    assert!(dev <= tol, "deviation {dev:e} > {tol:e} for F = {f:?}");
+    let ortho = max_abs(&(r.transpose() * r - DMat3::IDENTITY));
+    assert!(ortho <= 1e-14, "RᵀR − I = {ortho:e} for F = {f:?}");
+    let det = r.determinant();
+    assert!((det - 1.0).abs() <= 1e-14, "det R = {det} for F = {f:?}");
+    dev
+}
+
+/// Runs `n` cases from `case` (seeded by `name`), asserting deviations ≤ `tol`; returns the max deviation.
+fn family(name: &str, n: usize, tol: f64, mut case: impl FnMut(&mut Rng) -> DMat3) -> f64 {
+    let seed = name.bytes().fold(0x5EED, |h: u64, b| {
+        (h ^ b as u64).wrapping_mul(0x0100_0000_01B3)
+    });
+    let mut rng = Rng(seed);
+    let mut worst: f64 = 0.0;
+    for _ in 0..n {
+        let f = case(&mut rng);
+        worst = worst.max(check(&f, &svd_rotation(&f), tol));
+    }
+    println!("{name}: max |R − U Vᵀ| = {worst:.2e} over {n} matrices");
+    worst
+}
+
+#[test]
+fn realistic_near_rotations() {
+    family("stretch 0.8–1.2", 20_000, 1e-14, |r| {
+        let s = DVec3::new(r.range(0.8, 1.2), r.range(0.8, 1.2), r.range(0.8, 1.2));
+        r.usv(s)
+    });
+}
+
+#[test]
+fn wide_stretches() {
+    family("stretch 0.05–20", 20_000, 5e-14, |r| {
+        let s = DVec3::new(
+            r.log_range(0.05, 20.0),
+            r.log_range(0.05, 20.0),
+            r.log_range(0.05, 20.0),
+        );
+        r.usv(s)
+    });
+}
+
+#[test]
+fn shears() {
+    family("shear", 10_000, 1e-14, |r| {
+        let mut s = DMat3::IDENTITY;
+        let (i, j) = ((r.next_u64() % 3) as usize, (r.next_u64() % 3) as usize);
+        if i != j {
+            s.col_mut(j)[i] = r.range(-5.0, 5.0);
+        }
+        r.rotation() * s
+    });
+    family("general", 10_000, 1e-14, |r| r.mat(1.0));
+}
+
+#[test]
+fn near_identity_and_exact_rotations() {
+    family("I + 1e-6 noise", 10_000, 4e-15, |r| {
+        DMat3::IDENTITY + r.mat(1e-6)
+    });
+    family("rotation", 10_000, 4e-15, |r| r.rotation());
+    family("rotation + 1e-12 noise", 10_000, 4e-15, |r| {
+        r.rotation() + r.mat(1e-12)
+    });
+    check(&DMat3::IDENTITY, &DMat3::IDENTITY, 0.0);
+}
+
+#[test]
+fn repeated_singular_values() {
+    family("σ = (a, a, b)", 10_000, 1e-13, |r| {
+        let (a, b) = (r.log_range(0.1, 10.0), r.log_range(0.1, 10.0));
+        r.usv(DVec3::new(a, a, b))
+    });
+    family("σ = (a, a, a)", 10_000, 1e-14, |r| {
+        let a = r.log_range(0.1, 10.0);
+        r.usv(DVec3::splat(a))
+    });
+    family("σ = (a, a(1+1e-9), b)", 10_000, 1e-14, |r| {
+        let (a, b) = (r.log_range(0.5, 2.0), r.log_range(0.5, 2.0));
+        r.usv(DVec3::new(a, a * (1.0 + 1e-9), b))
+    });
+}
+
+#[test]
+fn nearly_singular() {
+    family("σ_min 1e-12–1e-2", 10_000, 1e-13, |r| {
+        let s = DVec3::new(
+            r.range(0.5, 2.0),
+            r.range(0.5, 2.0),
+            r.log_range(1e-12, 1e-2),
+        );
+        r.usv(s)
+    });
+    // Two small singular values: R itself is ill-conditioned (∝ 1/(σ₂ + σ₃)) near the switch.
+    family("σ₂, σ₃ 1e-4–1e-1", 10_000, 1e-13, |r| {
+        let s = DVec3::new(1.0, r.log_range(1e-4, 1e-1), r.log_range(1e-4, 1e-1));
+        r.usv(s)
+    });
+    family("rank 2", 1_000, 1e-12, |r| {
+        let s1 = r.range(0.1, 1.0);
+        r.usv(DVec3::new(1.0, s1, 0.0))
+    });
+    family("rank 1", 1_000, 1e-12, |r| r.usv(DVec3::new(1.0, 0.0, 0.0)));
+    check(&DMat3::ZERO, &svd_rotation(&DMat3::ZERO), 0.0);
+}
+
+#[test]
+fn inverted() {
+    // det F < 0: must stay on svd3's rotation-variant convention (det R = +1), bit for bit.
+    family("det < 0", 10_000, 0.0, |r| {
+        let s = DVec3::new(r.range(0.5, 2.0), r.range(0.5, 2.0), -r.range(0.01, 2.0));
+        r.usv(s)
+    });
+    check(
+        &DMat3::from_diagonal(DVec3::new(1.0, 1.0, -1.0)),
+        &svd_rotation(&DMat3::from_diagonal(DVec3::new(1.0, 1.0, -1.0))),
+        0.0,
+    );
+}
+
+#[test]
+fn extreme_scales() {
+    // R is scale invariant; svd3 itself over/underflows at these scales, so the reference is
+    // the rotation of the unscaled matrix.
+    let mut rng = Rng(77);
+    let mut worst: f64 = 0.0;
+    for _ in 0..2_000 {
+        let s = DVec3::new(
+            rng.range(0.5, 2.0),
+            rng.range(0.5, 2.0),
+            rng.range(0.5, 2.0),
+        );
+        let f = rng.usv(s);
+        let reference = svd_rotation(&f);
+        for scale in [1e150, 1e-150, 1e300, 1e-300] {
+            worst = worst.max(check(&(f * scale), &reference, 1e-13));
+        }
+        // Subnormal entries keep only ~10 significant digits of F.
+        check(&(f * 1e-310), &reference, 1e-8);
+        // Inverted: svd3 on the power-of-two normalised F, so bit-identical to the reference
+        // (svd3 is exactly scale invariant under powers of two away from over/underflow).
+        let inv = f * DMat3::from_diagonal(DVec3::new(1.0, -1.0, 1.0));
+        let reference = svd_rotation(&inv);
+        for scale in [2f64.powi(500), 2f64.powi(-500)] {
+            worst = worst.max(check(&(inv * scale), &reference, 0.0));
+        }
+    }
+    println!("extreme scales: max deviation {worst:.2e}");
+}
+
+#[test]
+fn non_finite_returns() {
+    // Must terminate (bounded iterations); the value itself is unspecified.
+    for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+        let mut f = DMat3::IDENTITY;
+        f.y_axis.z = bad;
+        let _ = polar_rotation(&f);
+        let _ = polar_rotation(&DMat3::from_diagonal(DVec3::splat(bad)));
+    }
+}
+
+#[test]
+fn fixed_corotated_stress_matches_svd_formula() {
+    // τ = 2μ (F − U Vᵀ) Fᵀ + λ J (J − 1) I with svd3's rotation, elastic and inverted F.
+    let (mu, lam) = (3.0e5, 2.0e5);
+    let mut rng = Rng(2024);
+    for k in 0..2_000 {
+        let s = DVec3::new(
+            rng.range(0.7, 1.3),
+            rng.range(0.7, 1.3),
+            rng.range(0.7, 1.3),
+        );
+        let sign = if k % 4 == 0 { -1.0 } else { 1.0 };
+        let f = rng.usv(s * DVec3::new(1.0, 1.0, sign));
+        let (f_new, tau) = FixedCorotated.update(&f, &DMat3::ZERO, mu, lam, 1e-4);
+        let j = f.determinant();
+        let expected = (f - svd_rotation(&f)) * f.transpose() * (2.0 * mu)
+            + DMat3::IDENTITY * (lam * j * (j - 1.0));
+        assert_eq!(f_new, f);
+        let err = max_abs(&(tau - expected));
+        assert!(
+            err <= 1e-14 * max_abs(&expected).max(mu),
+            "{err:e} for F = {f:?}"
+        );
+    }
+}
