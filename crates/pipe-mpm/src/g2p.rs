@@ -56,13 +56,13 @@ pub(crate) fn gather(grid: &GridSpec, vgrid: &[NodeVel], x: DVec3) -> (DVec3, DM
 
 /// `a s + b`, lane by lane, fused.
 #[inline(always)]
-fn fma4(a: [f64; 4], s: f64, b: [f64; 4]) -> [f64; 4] {
+pub(crate) fn fma4(a: [f64; 4], s: f64, b: [f64; 4]) -> [f64; 4] {
     std::array::from_fn(|l| a[l].mul_add(s, b[l]))
 }
 
 /// `a s`, lane by lane.
 #[inline(always)]
-fn mul4(a: [f64; 4], s: f64) -> [f64; 4] {
+pub(crate) fn mul4(a: [f64; 4], s: f64) -> [f64; 4] {
     a.map(|x| x * s)
 }
 

@@ -60,7 +60,7 @@ mod state;
 pub mod svd;
 pub mod timestep;
 
-pub use adjoint::{BackwardOptions, Gradients, Tape};
+pub use adjoint::{BackwardOptions, Gradients, SeedState, Tape};
 pub use boundary::{Boundaries, BoundaryKind, Collider};
 pub use error::MpmError;
 pub use family::{Family, ModelVisitor};

@@ -7,6 +7,8 @@
 //! (≤ SEGMENT_SNAPSHOTS + 1 substeps) also keep each recomputed substep's intermediates (τ,
 //! bins, grid), so their adjoint steps skip the forward recomputation.
 
+use std::borrow::Cow;
+
 use super::AdjointWork;
 use super::schedule::{SEGMENT_SNAPSHOTS, Schedule};
 use crate::error::MpmError;
@@ -48,6 +50,24 @@ impl Tape {
                 .as_ref()
                 .map_or_else(|| s.clone(), |o| o.unsort_state(s)),
         )
+    }
+}
+
+/// The state at a seed's substep (see [`Simulator::backward`]).
+#[derive(Debug, Clone, Copy)]
+pub struct SeedState<'a> {
+    slots: &'a State,
+    order: Option<&'a Order>,
+}
+
+impl SeedState<'_> {
+    /// The state, in the caller's particle order (built on demand when the run reordered
+    /// the particles).
+    pub fn get(&self) -> Cow<'_, State> {
+        match self.order {
+            None => Cow::Borrowed(self.slots),
+            Some(o) => Cow::Owned(o.unsort_state(self.slots)),
+        }
     }
 }
 
@@ -107,7 +127,8 @@ impl<M: Constitutive> Simulator<M> {
     }
 
     /// Backpropagates through a tape. `seed(k, state_k)` returns `∂L/∂state_k` of the loss
-    /// terms at substep `k` (called for `k = n_substeps` down to the start; `None` = no term).
+    /// terms at substep `k` (called for `k = n_substeps` down to the start; `None` = no term);
+    /// [`SeedState::get`] builds the state only for the seeds that read it.
     /// A non-finite gradient stops the pass with [`MpmError::NonFinite`] naming the substep.
     ///
     /// Each segment is reversed with at most [`SEGMENT_SNAPSHOTS`] recomputed states alive
@@ -116,18 +137,29 @@ impl<M: Constitutive> Simulator<M> {
         &self,
         tape: &Tape,
         mat: &Material,
-        mut seed: impl FnMut(usize, &State) -> Option<StateGrad>,
+        mut seed: impl FnMut(usize, SeedState<'_>) -> Option<StateGrad>,
         opts: BackwardOptions,
     ) -> Result<Gradients, MpmError> {
         let Some(o) = &tape.order else {
-            return self.backward_in_order(tape, mat, seed, opts);
+            let plain = |k: usize, s: &State| {
+                seed(
+                    k,
+                    SeedState {
+                        slots: s,
+                        order: None,
+                    },
+                )
+            };
+            return self.backward_in_order(tape, mat, plain, opts);
         };
         // The tape is in slot order: reverse there, translating the seeds and the results.
         let np = tape.final_state.len();
-        let mut caller = tape.final_state.clone(); // reused for every seed call
         let sorted_seed = |k: usize, s: &State| {
-            o.unsort_state_into(s, &mut caller);
-            seed(k, &caller).map(|g| {
+            let view = SeedState {
+                slots: s,
+                order: Some(o),
+            };
+            seed(k, view).map(|g| {
                 if g.len() == np && g.v.len() == np && g.c.len() == np && g.f.len() == np {
                     o.sort_grad(&g)
                 } else {

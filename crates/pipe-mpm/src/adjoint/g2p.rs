@@ -5,15 +5,73 @@
 
 use glam::{DMat3, DVec3};
 
+use crate::g2p::{fma4, gather};
 use crate::grid::GridSpec;
 use crate::grid_update::NodeVel;
+use crate::p2g::fma3;
+
+/// One particle's G2P adjoint, including the position update `x' = hold(x + dt v')`, as a
+/// unit of work for [`crate::isa::Isa::run`]; returns `(x̄, v̄)` of the particle.
+pub(crate) struct G2pAdjoint<'a> {
+    pub grid: &'a GridSpec,
+    pub vgrid: &'a [NodeVel],
+    /// Node gradients `v̄_i` of the particle's slab chunk, starting at x-layer `first`.
+    pub chunk: &'a mut [DVec3],
+    pub first: usize,
+    pub dt: f64,
+    /// Particles closer than this (m) to a domain wall may have been held there.
+    pub reach: f64,
+    pub x: DVec3,
+    /// `∂L/∂x'`, `∂L/∂v'`, `∂L/∂C'`.
+    pub gx: DVec3,
+    pub gv: DVec3,
+    pub gc: &'a DMat3,
+}
+
+impl pulp::NullaryFnOnce for G2pAdjoint<'_> {
+    type Output = (DVec3, DVec3);
+
+    #[inline(always)]
+    fn call(self) -> (DVec3, DVec3) {
+        let G2pAdjoint {
+            grid,
+            vgrid,
+            chunk,
+            first,
+            dt,
+            reach,
+            x,
+            gx,
+            gv,
+            gc,
+        } = self;
+        // |v'| ≤ max |v_i| (convex weights): far enough from the walls x' was not held (x̄'
+        // passes); else redo G2P's exact sum to decide.
+        let margin = (x - grid.domain.lo).min(grid.domain.hi - x).min_element();
+        let mask = if margin > reach {
+            DVec3::ONE
+        } else {
+            let unclamped = x + dt * gather(grid, vgrid, x).0;
+            let held = unclamped.clamp(grid.domain.lo, grid.domain.hi);
+            DVec3::select(unclamped.cmpeq(held), DVec3::ONE, DVec3::ZERO)
+        };
+        let gxn = gx * mask;
+        let gv = gv + dt * gxn;
+        let gx_w = g2p_adjoint_particle(grid, vgrid, chunk, first, x, gv, gc);
+        (gxn + gx_w, gv)
+    }
+}
 
 /// Adjoint of G2P for one particle, fused with the scatter of its node gradients: with
 /// `y_i = v̄_p + (4/dx²) C̄_p dpos_i` (built axis by axis along the separable stencil),
 /// `v̄_i += w_i y_i` into `chunk` (starting at x-layer `first`) and the returned
 /// `x̄_p = Σ ∇w_i (v_i·y_i) − (4/dx²) C̄_pᵀ v_p`, `v_p = Σ w_i v_i`.
+///
+/// Per row `(i, j)`, `y_k = y_ij + pz_k ȳ_z` (ȳ_z the third column of `(4/dx²) C̄`), so the
+/// z-sums `Σ_k (wz_k, wz_k pz_k, wz'_k, wz'_k pz_k) v_k` (four lanes each) give both weight
+/// terms `Σ wz_k v_k·y_k` and `Σ wz'_k v_k·y_k` with two dot products each.
 #[allow(clippy::too_many_arguments)]
-#[inline]
+#[inline(always)]
 pub(crate) fn g2p_adjoint_particle(
     grid: &GridSpec,
     vgrid: &[NodeVel],
@@ -27,29 +85,37 @@ pub(crate) fn g2p_adjoint_particle(
     let d_inv = 4.0 * grid.inv_dx * grid.inv_dx;
     let p = st.offsets(grid.dx);
     let gcd = *gc * d_inv;
-    let (mut v, mut gx) = (DVec3::ZERO, DVec3::ZERO);
+    let wz = [st.w[0].z, st.w[1].z, st.w[2].z];
+    let dwz = [st.dw[0].z, st.dw[1].z, st.dw[2].z];
+    let wzpz: [f64; 3] = std::array::from_fn(|k| wz[k] * p[k].z);
+    let dwzpz: [f64; 3] = std::array::from_fn(|k| dwz[k] * p[k].z);
+    let dot = |a: [f64; 4], b: DVec3| a[2].mul_add(b.z, a[1].mul_add(b.y, a[0] * b.x));
+    let (mut v, mut gx) = ([0.0; 4], DVec3::ZERO);
     for i in 0..3 {
         let (wx, dwx) = (st.w[i].x, st.dw[i].x);
-        let y_x = gv + gcd.x_axis * p[i].x;
-        for j in 0..3 {
+        let y_x = fma3(gcd.x_axis, p[i].x, gv);
+        for (j, pj) in p.iter().enumerate() {
             let (wy, dwy) = (st.w[j].y, st.dw[j].y);
-            let y_xy = y_x + gcd.y_axis * p[j].y;
+            let y_xy = fma3(gcd.y_axis, pj.y, y_x);
             let wxy = wx * wy;
             let row = grid.row(vgrid, st.local, i, j);
-            let out = grid.row_mut(chunk, first, st.local, i, j);
-            let (mut v_ij, mut sw, mut sdw) = (DVec3::ZERO, 0.0, 0.0);
+            let (mut s, mut sp, mut ds, mut dsp) = ([0.0; 4], [0.0; 4], [0.0; 4], [0.0; 4]);
             for k in 0..3 {
-                let y = y_xy + gcd.z_axis * p[k].z;
-                let vk = row[k].v;
-                let t = vk.dot(y);
-                v_ij += vk * st.w[k].z;
-                sw += st.w[k].z * t;
-                sdw += st.dw[k].z * t;
-                out[k] += y * (wxy * st.w[k].z);
+                let vk = row[k].lanes();
+                s = fma4(vk, wz[k], s);
+                sp = fma4(vk, wzpz[k], sp);
+                ds = fma4(vk, dwz[k], ds);
+                dsp = fma4(vk, dwzpz[k], dsp);
             }
-            v += v_ij * wxy;
+            let out = grid.row_mut(chunk, first, st.local, i, j);
+            for (k, o) in out.iter_mut().enumerate() {
+                *o = fma3(gcd.z_axis, wxy * wzpz[k], fma3(y_xy, wxy * wz[k], *o));
+            }
+            let sw = dot(sp, gcd.z_axis) + dot(s, y_xy);
+            let sdw = dot(dsp, gcd.z_axis) + dot(ds, y_xy);
+            v = fma4(s, wxy, v);
             gx += DVec3::new(dwx * wy * sw, wx * dwy * sw, wxy * sdw);
         }
     }
-    gx * grid.inv_dx - gcd.transpose() * v
+    gx * grid.inv_dx - gcd.transpose() * DVec3::new(v[0], v[1], v[2])
 }

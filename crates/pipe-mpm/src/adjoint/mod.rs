@@ -7,13 +7,14 @@ mod grid_update;
 mod p2g;
 mod schedule;
 
-pub use checkpoint::{BackwardOptions, Gradients, Tape};
+pub use checkpoint::{BackwardOptions, Gradients, SeedState, Tape};
 pub use schedule::SEGMENT_SNAPSHOTS;
 
 use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::error::MpmError;
+use crate::isa::Isa;
 use crate::models::Constitutive;
 use crate::p2g::Node;
 use crate::scatter::scatter_with;
@@ -112,6 +113,7 @@ impl<M: Constitutive> Simulator<M> {
         // scattered in the same pass. Outputs go to `aw.g2p` in bin order, then to g.x, g.v.
         aw.g_vgrid.clear();
         aw.g_vgrid.resize(grid.len(), DVec3::ZERO);
+        let isa = Isa::detect();
         aw.g2p.resize(s.len(), (DVec3::ZERO, DVec3::ZERO));
         {
             let (gx_in, gv_in, gc_in) = (&g.x, &g.v, &g.c);
@@ -121,22 +123,18 @@ impl<M: Constitutive> Simulator<M> {
                 &mut aw.g_vgrid,
                 &mut aw.g2p,
                 |p, o, chunk, first| {
-                    let x = s.x[p];
-                    // |v'| ≤ max |v_i| (convex weights): far enough from the walls x' was not
-                    // held (mask 1); else redo G2P's exact sum to decide.
-                    let margin = (x - grid.domain.lo).min(grid.domain.hi - x).min_element();
-                    let mask = if margin > reach {
-                        DVec3::ONE
-                    } else {
-                        let unclamped = x + dt * crate::g2p::gather(grid, &w.vgrid, x).0;
-                        let held = unclamped.clamp(grid.domain.lo, grid.domain.hi);
-                        DVec3::select(unclamped.cmpeq(held), DVec3::ONE, DVec3::ZERO)
-                    };
-                    let gxn = gx_in[p] * mask;
-                    let gv = gv_in[p] + dt * gxn;
-                    let gx_w =
-                        g2p::g2p_adjoint_particle(grid, &w.vgrid, chunk, first, x, gv, &gc_in[p]);
-                    *o = (gxn + gx_w, gv);
+                    *o = isa.run(g2p::G2pAdjoint {
+                        grid,
+                        vgrid: &w.vgrid,
+                        chunk,
+                        first,
+                        dt,
+                        reach,
+                        x: s.x[p],
+                        gx: gx_in[p],
+                        gv: gv_in[p],
+                        gc: &gc_in[p],
+                    });
                 },
             );
         }
@@ -172,18 +170,18 @@ impl<M: Constitutive> Simulator<M> {
             .enumerate()
             .map(|(p, (gx, gv, gc, gf, gmass, gvol, gmu, glam, gfam))| {
                 let extra = w.extra.as_ref().map_or(DVec3::ZERO, |e| e[p]);
-                let pg = p2g::p2g_adjoint_particle(
+                let pg = isa.run(p2g::P2gAdjoint {
                     grid,
                     g_nodes,
                     dt,
-                    s.x[p],
-                    s.v[p],
-                    &s.c[p],
-                    &w.tau[p],
-                    mat.mass[p],
-                    mat.volume[p],
+                    x: s.x[p],
+                    v: s.v[p],
+                    c: &s.c[p],
+                    tau: &w.tau[p],
+                    mass: mat.mass[p],
+                    volume: mat.volume[p],
                     extra,
-                );
+                });
                 let f_tmp = model.predict(&s.c[p], &s.f[p], dt);
                 let mg =
                     model.update_adjoint(&f_tmp, &s.c[p], mat.mu[p], mat.lam[p], dt, gf, &pg.tau);

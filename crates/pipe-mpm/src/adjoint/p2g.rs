@@ -6,9 +6,10 @@
 
 use glam::{DMat3, DVec3};
 
+use crate::g2p::{fma4, mul4};
 use crate::grid::GridSpec;
 use crate::math::ddot;
-use crate::p2g::{Node, affine};
+use crate::p2g::{Node, affine, fma3};
 
 /// Per-particle gradients from P2G.
 #[derive(Debug, Clone, Copy, Default)]
@@ -21,66 +22,103 @@ pub(crate) struct P2gGrad {
     pub volume: f64,
 }
 
+/// [`p2g_adjoint_particle`] as a unit of work for [`crate::isa::Isa::run`].
+pub(crate) struct P2gAdjoint<'a> {
+    pub grid: &'a GridSpec,
+    pub g_nodes: &'a [Node],
+    pub dt: f64,
+    pub x: DVec3,
+    pub v: DVec3,
+    pub c: &'a DMat3,
+    pub tau: &'a DMat3,
+    pub mass: f64,
+    pub volume: f64,
+    pub extra: DVec3,
+}
+
+impl pulp::NullaryFnOnce for P2gAdjoint<'_> {
+    type Output = P2gGrad;
+
+    #[inline(always)]
+    fn call(self) -> P2gGrad {
+        p2g_adjoint_particle(&self)
+    }
+}
+
 /// Per-particle adjoint of P2G, gathered over the 27 nodes. The sums are arranged around the
 /// separable stencil (`w = wx wy wz`, `dpos = (px, py, pz)`): `Ā`'s first two columns are
-/// `Σ_i px_i (Σ_jk w m̄v)` and `Σ_j py_j (Σ_ik w m̄v)`, `Σ w m̄v·(C dpos) = C : Ā`, and the
-/// weight-gradient terms are summed along z before the x/y factors are applied.
-#[allow(clippy::too_many_arguments)]
-#[inline]
-pub(crate) fn p2g_adjoint_particle(
-    grid: &GridSpec,
-    g_nodes: &[Node],
-    dt: f64,
-    x: DVec3,
-    v: DVec3,
-    c: &DMat3,
-    tau: &DMat3,
-    mass: f64,
-    volume: f64,
-    extra: DVec3,
-) -> P2gGrad {
+/// `Σ_i px_i (Σ_jk w m̄v)` and `Σ_j py_j (Σ_ik w m̄v)`, `Σ w m̄v·(C dpos) = C : Ā`. Per row
+/// `(i, j)` the z-sums `Σ_k (wz_k, wz_k pz_k, wz'_k, wz'_k pz_k) (m̄v_k, m̄_k)` (four lanes
+/// each) give the weight-gradient factors `Σ_k wz_k t_k` and `Σ_k wz'_k t_k` of
+/// `t_k = m̄v_k·(mom_ij + A₂ pz_k) + m m̄_k` with two dot products each.
+#[inline(always)]
+pub(crate) fn p2g_adjoint_particle(inp: &P2gAdjoint<'_>) -> P2gGrad {
+    let P2gAdjoint {
+        grid,
+        g_nodes,
+        dt,
+        x,
+        v,
+        c,
+        tau,
+        mass,
+        volume,
+        extra,
+    } = *inp;
     let st = grid.stencil(x);
     let d_inv = 4.0 * grid.inv_dx * grid.inv_dx;
     let a = affine(grid, dt, volume, mass, tau, c);
     let mom = v * mass + extra;
-    let (sy, dx) = (grid.dims[2], grid.dx);
-    let sx = grid.dims[1] * sy;
-    let base = grid.linear(st.local);
-    let p = [0.0, 1.0, 2.0].map(|o| (DVec3::splat(o) - st.fx) * dx);
-    let (mut ga0, mut ga2, mut sum_wg) = (DVec3::ZERO, DVec3::ZERO, DVec3::ZERO);
-    let mut by_j = [DVec3::ZERO; 3];
-    let (mut sum_wm, mut gx) = (0.0, DVec3::ZERO);
+    let p = st.offsets(grid.dx);
+    let wz = [st.w[0].z, st.w[1].z, st.w[2].z];
+    let dwz = [st.dw[0].z, st.dw[1].z, st.dw[2].z];
+    let wzpz: [f64; 3] = std::array::from_fn(|k| wz[k] * p[k].z);
+    let dwzpz: [f64; 3] = std::array::from_fn(|k| dwz[k] * p[k].z);
+    // `a·(b, mass)` over four lanes, and over the first three.
+    let dot4 = |a: [f64; 4], b: DVec3| {
+        a[3].mul_add(mass, a[2].mul_add(b.z, a[1].mul_add(b.y, a[0] * b.x)))
+    };
+    let dot3 = |a: [f64; 4], b: DVec3| a[2].mul_add(b.z, a[1].mul_add(b.y, a[0] * b.x));
+    let (mut ga0, mut ga2, mut sum_wg) = ([0.0; 4], [0.0; 4], [0.0; 4]);
+    let mut by_j = [[0.0; 4]; 3];
+    let mut gx = DVec3::ZERO;
     for i in 0..3 {
         let (wx, dwx, px) = (st.w[i].x, st.dw[i].x, p[i].x);
-        let mut s_i = DVec3::ZERO;
-        let mom_x = mom + a.x_axis * px;
-        for j in 0..3 {
+        let mut s_i = [0.0; 4];
+        let mom_x = fma3(a.x_axis, px, mom);
+        for (j, b) in by_j.iter_mut().enumerate() {
             let (wy, dwy, py) = (st.w[j].y, st.dw[j].y, p[j].y);
-            let mom_xy = mom_x + a.y_axis * py;
-            let row = base + i * sx + j * sy;
-            let row = &g_nodes[row..row + 3];
-            let (mut s_ij, mut sw, mut sdw) = (DVec3::ZERO, 0.0, 0.0);
+            let mom_xy = fma3(a.y_axis, py, mom_x);
+            let row = grid.row(g_nodes, st.local, i, j);
+            let (mut s, mut sp, mut ds, mut dsp) = ([0.0; 4], [0.0; 4], [0.0; 4], [0.0; 4]);
             for k in 0..3 {
-                let (wz, dwz, pz) = (st.w[k].z, st.dw[k].z, p[k].z);
-                let gn = row[k];
-                let u = gn.mv * (wx * wy * wz);
-                s_ij += u;
-                ga2 += u * pz;
-                sum_wm += wx * wy * wz * gn.m;
-                // m̄v·(mom + A dpos) + m m̄, the factor of ∇w.
-                let t = gn.mv.dot(mom_xy + a.z_axis * pz) + mass * gn.m;
-                sw += wz * t;
-                sdw += dwz * t;
+                let n = row[k];
+                let nk = [n.mv.x, n.mv.y, n.mv.z, n.m];
+                s = fma4(nk, wz[k], s);
+                sp = fma4(nk, wzpz[k], sp);
+                ds = fma4(nk, dwz[k], ds);
+                dsp = fma4(nk, dwzpz[k], dsp);
             }
-            s_i += s_ij;
-            by_j[j] += s_ij;
-            gx += DVec3::new(dwx * wy * sw, wx * dwy * sw, wx * wy * sdw);
+            let sw = dot3(sp, a.z_axis) + dot4(s, mom_xy);
+            let sdw = dot3(dsp, a.z_axis) + dot4(ds, mom_xy);
+            let wxy = wx * wy;
+            s_i = fma4(s, wy, s_i);
+            *b = fma4(s, wxy, *b);
+            ga2 = fma4(sp, wxy, ga2);
+            gx += DVec3::new(dwx * wy * sw, wx * dwy * sw, wxy * sdw);
         }
-        ga0 += s_i * px;
-        sum_wg += s_i;
+        ga0 = fma4(s_i, wx * px, ga0);
+        sum_wg = fma4(s_i, wx, sum_wg);
     }
-    let ga1 = by_j[0] * p[0].y + by_j[1] * p[1].y + by_j[2] * p[2].y;
-    let ga = DMat3::from_cols(ga0, ga1, ga2);
+    let ga1 = fma4(
+        by_j[2],
+        p[2].y,
+        fma4(by_j[1], p[1].y, mul4(by_j[0], p[0].y)),
+    );
+    let v3 = |a: [f64; 4]| DVec3::new(a[0], a[1], a[2]);
+    let ga = DMat3::from_cols(v3(ga0), v3(ga1), v3(ga2));
+    let sum_wm = sum_wg[3];
+    let sum_wg = v3(sum_wg);
     P2gGrad {
         x: gx * grid.inv_dx - a.transpose() * sum_wg,
         v: sum_wg * mass,
