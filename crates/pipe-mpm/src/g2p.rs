@@ -6,7 +6,7 @@ use rayon::prelude::*;
 
 use crate::grid::GridSpec;
 use crate::grid_update::NodeVel;
-use crate::isa::Isa;
+use crate::isa::{Isa, Lanes, WithLanes};
 
 /// Particles per parallel task of [`g2p`].
 const CHUNK: usize = 1024;
@@ -16,38 +16,48 @@ const CHUNK: usize = 1024;
 /// `u = Σ_k wz_k pz_k v_k`; then `v = Σ_i wx_i Σ_j wy_j r`, and `C`'s columns are
 /// `Σ_i wx_i px_i Σ_j wy_j r`, `Σ_j wy_j py_j Σ_i wx_i r` and `Σ_ij wx_i wy_j u` (times
 /// `4/dx²`). Four lanes per node (the fourth is 0) and fused multiply-adds throughout, so the
-/// result is the same on every CPU.
+/// result is the same with any [`Lanes`] and on every CPU.
 #[inline(always)]
-pub(crate) fn gather(grid: &GridSpec, vgrid: &[NodeVel], x: DVec3) -> (DVec3, DMat3) {
+pub(crate) fn gather<L: Lanes>(
+    l: L,
+    grid: &GridSpec,
+    vgrid: &[NodeVel],
+    x: DVec3,
+) -> (DVec3, DMat3) {
     let st = grid.stencil(x);
     let d = st.offsets(grid.dx);
-    let wz = [st.w[0].z, st.w[1].z, st.w[2].z];
-    let wzpz = [wz[0] * d[0].z, wz[1] * d[1].z, wz[2] * d[2].z];
-    let (mut v, mut c0, mut c2) = ([0.0; 4], [0.0; 4], [0.0; 4]);
-    let mut by_j = [[0.0; 4]; 3];
+    let wz = [st.w[0].z, st.w[1].z, st.w[2].z].map(|w| l.splat(w));
+    let wzpz: [L::V; 3] = std::array::from_fn(|k| l.splat(st.w[k].z * d[k].z));
+    let zero = l.splat(0.0);
+    let (mut v, mut c0, mut c2) = (zero, zero, zero);
+    let mut by_j = [zero; 3];
     for (i, (di, wi)) in d.iter().zip(st.w).enumerate() {
-        let (mut r_i, mut u_i) = ([0.0; 4], [0.0; 4]);
+        let (mut r_i, mut u_i) = (zero, zero);
         for (j, b) in by_j.iter_mut().enumerate() {
             let row = grid.row(vgrid, st.local, i, j);
-            let (n0, n1, n2) = (row[0].lanes(), row[1].lanes(), row[2].lanes());
-            let r = fma4(n2, wz[2], fma4(n1, wz[1], mul4(n0, wz[0])));
-            let u = fma4(n2, wzpz[2], fma4(n1, wzpz[1], mul4(n0, wzpz[0])));
+            let n = [0, 1, 2].map(|k| l.load(row[k].lanes()));
+            let r = l.fma(n[2], wz[2], l.fma(n[1], wz[1], l.mul(n[0], wz[0])));
+            let u = l.fma(n[2], wzpz[2], l.fma(n[1], wzpz[1], l.mul(n[0], wzpz[0])));
             let wy = st.w[j].y;
-            r_i = fma4(r, wy, r_i);
-            u_i = fma4(u, wy, u_i);
-            *b = fma4(r, wi.x * wy, *b);
+            r_i = l.fma(r, l.splat(wy), r_i);
+            u_i = l.fma(u, l.splat(wy), u_i);
+            *b = l.fma(r, l.splat(wi.x * wy), *b);
         }
-        v = fma4(r_i, wi.x, v);
-        c0 = fma4(r_i, wi.x * di.x, c0);
-        c2 = fma4(u_i, wi.x, c2);
+        v = l.fma(r_i, l.splat(wi.x), v);
+        c0 = l.fma(r_i, l.splat(wi.x * di.x), c0);
+        c2 = l.fma(u_i, l.splat(wi.x), c2);
     }
-    let c1 = fma4(
+    let c1 = l.fma(
         by_j[2],
-        d[2].y,
-        fma4(by_j[1], d[1].y, mul4(by_j[0], d[0].y)),
+        l.splat(d[2].y),
+        l.fma(by_j[1], l.splat(d[1].y), l.mul(by_j[0], l.splat(d[0].y))),
     );
     let s = 4.0 * grid.inv_dx * grid.inv_dx;
-    let col = |a: [f64; 4]| DVec3::new(a[0] * s, a[1] * s, a[2] * s);
+    let col = |a: L::V| {
+        let a = l.store(a);
+        DVec3::new(a[0] * s, a[1] * s, a[2] * s)
+    };
+    let v = l.store(v);
     (
         DVec3::new(v[0], v[1], v[2]),
         DMat3::from_cols(col(c0), col(c1), col(c2)),
@@ -83,7 +93,7 @@ pub(crate) fn g2p(
         .zip(c.par_chunks_mut(CHUNK))
         .enumerate()
         .map(|(k, ((x, v), c))| {
-            isa.run(Chunk {
+            isa.run_lanes(Chunk {
                 grid,
                 vgrid,
                 dt,
@@ -107,15 +117,15 @@ struct Chunk<'a> {
     c: &'a mut [DMat3],
 }
 
-impl pulp::NullaryFnOnce for Chunk<'_> {
+impl WithLanes for Chunk<'_> {
     type Output = (usize, bool);
 
     #[inline(always)]
-    fn call(self) -> (usize, bool) {
+    fn with<L: Lanes>(self, l: L) -> (usize, bool) {
         let (mut held, mut bad) = (0, false);
         for (p, ((xp, vp), cp)) in self.x.iter_mut().zip(self.v).zip(self.c).enumerate() {
             let x0 = self.x_old.map_or(*xp, |xo| xo[p]);
-            let (vn, cn) = gather(self.grid, self.vgrid, x0);
+            let (vn, cn) = gather(l, self.grid, self.vgrid, x0);
             *vp = vn;
             *cp = cn;
             *xp = x0 + self.dt * vn;

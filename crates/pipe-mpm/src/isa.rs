@@ -42,3 +42,115 @@ impl Isa {
         }
     }
 }
+
+/// Work generic over the [`Lanes`] implementation, for [`Isa::run_lanes`].
+pub(crate) trait WithLanes {
+    /// Result.
+    type Output;
+    /// Runs the work with lanes `l` (must be `#[inline(always)]`).
+    fn with<L: Lanes>(self, l: L) -> Self::Output;
+}
+
+impl Isa {
+    /// Runs `op` with this instruction set enabled and its [`Lanes`].
+    #[inline(always)]
+    pub(crate) fn run_lanes<Op: WithLanes>(self, op: Op) -> Op::Output {
+        match self {
+            #[cfg(target_arch = "x86_64")]
+            Isa::Fma(v) => v.vectorize(InLanes(v, op)),
+            Isa::Baseline => op.with(Scalar),
+        }
+    }
+}
+
+/// `op` bound to lanes `l`, as a [`pulp::NullaryFnOnce`].
+struct InLanes<L, Op>(L, Op);
+
+impl<L: Lanes, Op: WithLanes> pulp::NullaryFnOnce for InLanes<L, Op> {
+    type Output = Op::Output;
+
+    #[inline(always)]
+    fn call(self) -> Op::Output {
+        self.1.with(self.0)
+    }
+}
+
+/// Four `f64` lanes and the operations the node kernels need: AVX2 vectors under
+/// [`Isa::Fma`], plain arrays (the same arithmetic lane by lane) otherwise.
+pub(crate) trait Lanes: Copy {
+    /// The vector type.
+    type V: Copy;
+    /// `[a, b, c, d]` as a vector.
+    fn load(self, a: [f64; 4]) -> Self::V;
+    /// The lanes of a vector.
+    fn store(self, v: Self::V) -> [f64; 4];
+    /// `x` in every lane.
+    fn splat(self, x: f64) -> Self::V;
+    /// `a b + c`, fused.
+    fn fma(self, a: Self::V, b: Self::V, c: Self::V) -> Self::V;
+    /// `a b`.
+    fn mul(self, a: Self::V, b: Self::V) -> Self::V;
+}
+
+#[cfg(target_arch = "x86_64")]
+impl Lanes for pulp::x86::V3 {
+    type V = pulp::f64x4;
+
+    #[inline(always)]
+    fn load(self, a: [f64; 4]) -> pulp::f64x4 {
+        pulp::cast(a)
+    }
+
+    #[inline(always)]
+    fn store(self, v: pulp::f64x4) -> [f64; 4] {
+        pulp::cast(v)
+    }
+
+    #[inline(always)]
+    fn splat(self, x: f64) -> pulp::f64x4 {
+        self.splat_f64x4(x)
+    }
+
+    #[inline(always)]
+    fn fma(self, a: pulp::f64x4, b: pulp::f64x4, c: pulp::f64x4) -> pulp::f64x4 {
+        self.mul_add_f64x4(a, b, c)
+    }
+
+    #[inline(always)]
+    fn mul(self, a: pulp::f64x4, b: pulp::f64x4) -> pulp::f64x4 {
+        self.mul_f64x4(a, b)
+    }
+}
+
+/// Lane-by-lane fallback of [`Lanes`].
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Scalar;
+
+impl Lanes for Scalar {
+    type V = [f64; 4];
+
+    #[inline(always)]
+    fn load(self, a: [f64; 4]) -> [f64; 4] {
+        a
+    }
+
+    #[inline(always)]
+    fn store(self, v: [f64; 4]) -> [f64; 4] {
+        v
+    }
+
+    #[inline(always)]
+    fn splat(self, x: f64) -> [f64; 4] {
+        [x; 4]
+    }
+
+    #[inline(always)]
+    fn fma(self, a: [f64; 4], b: [f64; 4], c: [f64; 4]) -> [f64; 4] {
+        std::array::from_fn(|l| a[l].mul_add(b[l], c[l]))
+    }
+
+    #[inline(always)]
+    fn mul(self, a: [f64; 4], b: [f64; 4]) -> [f64; 4] {
+        std::array::from_fn(|l| a[l] * b[l])
+    }
+}

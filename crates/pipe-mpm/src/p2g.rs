@@ -6,7 +6,7 @@
 use glam::{DMat3, DVec3};
 
 use crate::grid::GridSpec;
-use crate::isa::Isa;
+use crate::isa::{Isa, Lanes, WithLanes};
 use crate::scatter::{Bins, scatter_slabs};
 
 /// Grid node accumulator: momentum (kg·m/s) and mass (kg), laid out as four consecutive `f64`
@@ -18,6 +18,23 @@ pub struct Node {
     pub mv: DVec3,
     /// Mass (kg).
     pub m: f64,
+}
+
+impl Node {
+    /// The four lanes `(mv, m)`.
+    #[inline(always)]
+    pub(crate) fn lanes(&self) -> [f64; 4] {
+        [self.mv.x, self.mv.y, self.mv.z, self.m]
+    }
+
+    /// A node from its four lanes `(mv, m)`.
+    #[inline(always)]
+    pub(crate) fn from_lanes(a: [f64; 4]) -> Self {
+        Self {
+            mv: DVec3::new(a[0], a[1], a[2]),
+            m: a[3],
+        }
+    }
 }
 
 /// Inputs of P2G, one entry per particle.
@@ -54,7 +71,7 @@ pub(crate) fn p2g(grid: &GridSpec, bins: &Bins, inp: P2gIn<'_>, nodes: &mut Vec<
     nodes.resize(grid.len(), Node::default());
     let isa = Isa::detect();
     scatter_slabs(grid, bins, nodes, |ps, chunk, first| {
-        isa.run(Slab {
+        isa.run_lanes(Slab {
             grid,
             inp: &inp,
             ps,
@@ -73,11 +90,11 @@ struct Slab<'a> {
     first: usize,
 }
 
-impl pulp::NullaryFnOnce for Slab<'_> {
+impl WithLanes for Slab<'_> {
     type Output = ();
 
     #[inline(always)]
-    fn call(self) {
+    fn with<L: Lanes>(self, l: L) {
         let Slab {
             grid,
             inp,
@@ -93,16 +110,18 @@ impl pulp::NullaryFnOnce for Slab<'_> {
             if let Some(e) = inp.extra {
                 mom += e[p];
             }
-            scatter_particle(grid, chunk, first, inp.x[p], mom, m, &a);
+            scatter_particle(l, grid, chunk, first, inp.x[p], mom, m, &a);
         }
     }
 }
 
 /// Adds one particle's `w (mom + A dpos, m)` to its 27 nodes. Along the separable stencil,
 /// `q = mom + A₀ px + A₁ py` per row and node `k` of the row gets
-/// `w_k (q, m) + (w_k pz_k) (A₂, 0)`: two fused multiply-adds per lane.
+/// `w_k (q, m) + (w_k pz_k) (A₂, 0)`: two fused multiply-adds on the node's four lanes.
+#[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn scatter_particle(
+fn scatter_particle<L: Lanes>(
+    l: L,
     grid: &GridSpec,
     chunk: &mut [Node],
     first: usize,
@@ -115,22 +134,18 @@ fn scatter_particle(
     let d = st.offsets(grid.dx);
     let wz = [st.w[0].z, st.w[1].z, st.w[2].z];
     let wzpz = [wz[0] * d[0].z, wz[1] * d[1].z, wz[2] * d[2].z];
-    let az = [a.z_axis.x, a.z_axis.y, a.z_axis.z, 0.0];
+    let az = l.load([a.z_axis.x, a.z_axis.y, a.z_axis.z, 0.0]);
     for i in 0..3 {
         let q_x = fma3(a.x_axis, d[i].x, mom);
         for (j, (dj, wj)) in d.iter().zip(st.w).enumerate() {
             let q = fma3(a.y_axis, dj.y, q_x);
-            let q = [q.x, q.y, q.z, m];
+            let q = l.load([q.x, q.y, q.z, m]);
             let wxy = st.w[i].x * wj.y;
             let row = grid.row_mut(chunk, first, st.local, i, j);
             for (k, n) in row.iter_mut().enumerate() {
-                let (w, wp) = (wxy * wz[k], wxy * wzpz[k]);
-                let mut l = [n.mv.x, n.mv.y, n.mv.z, n.m];
-                for c in 0..4 {
-                    l[c] = wp.mul_add(az[c], w.mul_add(q[c], l[c]));
-                }
-                n.mv = DVec3::new(l[0], l[1], l[2]);
-                n.m = l[3];
+                let (w, wp) = (l.splat(wxy * wz[k]), l.splat(wxy * wzpz[k]));
+                let lanes = l.fma(az, wp, l.fma(q, w, l.load(n.lanes())));
+                *n = Node::from_lanes(l.store(lanes));
             }
         }
     }

@@ -8,6 +8,7 @@ use glam::{DMat3, DVec3};
 use crate::g2p::{fma4, gather};
 use crate::grid::GridSpec;
 use crate::grid_update::NodeVel;
+use crate::isa::Scalar;
 use crate::p2g::fma3;
 
 /// One particle's G2P adjoint, including the position update `x' = hold(x + dt v')`, as a
@@ -51,7 +52,7 @@ impl pulp::NullaryFnOnce for G2pAdjoint<'_> {
         let mask = if margin > reach {
             DVec3::ONE
         } else {
-            let unclamped = x + dt * gather(grid, vgrid, x).0;
+            let unclamped = x + dt * gather(Scalar, grid, vgrid, x).0;
             let held = unclamped.clamp(grid.domain.lo, grid.domain.hi);
             DVec3::select(unclamped.cmpeq(held), DVec3::ONE, DVec3::ZERO)
         };
