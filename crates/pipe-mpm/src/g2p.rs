@@ -64,18 +64,6 @@ pub(crate) fn gather<L: Lanes>(
     )
 }
 
-/// `a s + b`, lane by lane, fused.
-#[inline(always)]
-pub(crate) fn fma4(a: [f64; 4], s: f64, b: [f64; 4]) -> [f64; 4] {
-    std::array::from_fn(|l| a[l].mul_add(s, b[l]))
-}
-
-/// `a s`, lane by lane.
-#[inline(always)]
-pub(crate) fn mul4(a: [f64; 4], s: f64) -> [f64; 4] {
-    a.map(|x| x * s)
-}
-
 /// New `x, v, C` of every particle from the old positions `x_old` (`None`: `x` itself, updated
 /// in place); returns the number held at the domain edge and whether any new value is NaN/Inf.
 pub(crate) fn g2p(

@@ -36,6 +36,12 @@ impl NodeVel {
     pub(crate) fn lanes(&self) -> [f64; 4] {
         [self.v.x, self.v.y, self.v.z, self.pad]
     }
+
+    /// A node velocity from four lanes (the fourth is dropped).
+    #[inline(always)]
+    pub(crate) fn from_lanes(a: [f64; 4]) -> Self {
+        Self::new(DVec3::new(a[0], a[1], a[2]))
+    }
 }
 
 /// Node velocities (m/s) after gravity `g` (m/s²) and the boundary conditions.

@@ -1,14 +1,14 @@
 //! Run-time choice of the instruction set for the particle kernels.
 //!
-//! The kernels are plain Rust written lane by lane with `f64::mul_add`; run inside
-//! [`Isa::run`] on a CPU with AVX2 + FMA they are compiled with those features enabled
-//! (`pulp`'s `vectorize`), so the fused multiply-adds are single instructions and LLVM packs
-//! the four lanes of a grid node into one vector. Without them the same code runs with a
-//! software `mul_add`: slower, but bit-identical, since a fused multiply-add is exactly rounded
-//! either way. Everything called inside must be `#[inline(always)]` to inherit the features,
-//! and the work is handed over as a [`pulp::NullaryFnOnce`] whose `call` is
-//! `#[inline(always)]` (a closure's body is not reliably inlined, and would then run without
-//! the features, calling the software `fma`).
+//! The node kernels work on four `f64` lanes (a grid node's momentum and mass, or a node
+//! velocity padded with 0) through [`Lanes`]. Run by [`Isa::run_lanes`] on a CPU with AVX2 +
+//! FMA they get `pulp`'s `f64x4` vectors and are compiled with those features enabled
+//! (`pulp`'s `vectorize`); elsewhere they get plain arrays and `f64::mul_add` (a software
+//! fused multiply-add: slower, but bit-identical, since a fused multiply-add is exactly rounded
+//! either way). Everything called inside must be `#[inline(always)]` to inherit the features,
+//! and the work is handed over as a [`WithLanes`] value whose `with` is `#[inline(always)]` (a
+//! closure's body is not reliably inlined, and would then run without the features, calling
+//! the software `fma`).
 
 /// The instruction set the kernels run with (detected once per call site; `pulp` caches it).
 #[derive(Debug, Clone, Copy)]
@@ -32,13 +32,13 @@ impl Isa {
         Isa::Baseline
     }
 
-    /// Runs `op` with this instruction set enabled.
+    /// Runs `op` with this instruction set enabled and its [`Lanes`].
     #[inline(always)]
-    pub(crate) fn run<Op: pulp::NullaryFnOnce>(self, op: Op) -> Op::Output {
+    pub(crate) fn run_lanes<Op: WithLanes>(self, op: Op) -> Op::Output {
         match self {
             #[cfg(target_arch = "x86_64")]
-            Isa::Fma(v) => v.vectorize(op),
-            Isa::Baseline => op.call(),
+            Isa::Fma(v) => v.vectorize(InLanes(v, op)),
+            Isa::Baseline => op.with(Scalar),
         }
     }
 }
@@ -49,18 +49,6 @@ pub(crate) trait WithLanes {
     type Output;
     /// Runs the work with lanes `l` (must be `#[inline(always)]`).
     fn with<L: Lanes>(self, l: L) -> Self::Output;
-}
-
-impl Isa {
-    /// Runs `op` with this instruction set enabled and its [`Lanes`].
-    #[inline(always)]
-    pub(crate) fn run_lanes<Op: WithLanes>(self, op: Op) -> Op::Output {
-        match self {
-            #[cfg(target_arch = "x86_64")]
-            Isa::Fma(v) => v.vectorize(InLanes(v, op)),
-            Isa::Baseline => op.with(Scalar),
-        }
-    }
 }
 
 /// `op` bound to lanes `l`, as a [`pulp::NullaryFnOnce`].

@@ -7,6 +7,9 @@
 //!
 //! Reverse mode is written by hand ([`Simulator::substep_backward`], [`Simulator::backward`]
 //! with checkpointing). P2G is parallel without atomics and bit-identical for any thread count.
+//! A run works on the particles sorted by grid cell and returns everything in the caller's
+//! order; the node kernels use AVX2 + FMA when the CPU has them, with results identical to
+//! the portable path.
 //!
 //! ```
 //! use glam::DVec3;
@@ -39,7 +42,8 @@
 //! Modules: [`grid`] (index math, stencil), `p2g`, `grid_update`, `g2p`, [`boundary`],
 //! [`forces`], [`timestep`], [`svd`], [`models`] (one file per family), [`adjoint`]
 //! (per-kernel adjoints and checkpointing), [`scatter`] (deterministic parallel scatter),
-//! [`family`] (runtime family choice, monomorphised inside).
+//! [`family`] (runtime family choice, monomorphised inside), `order` (the spatial order of a
+//! run), `isa` (run-time AVX2 + FMA choice and the 4-lane vectors of the node kernels).
 
 pub mod adjoint;
 pub mod boundary;

@@ -2,7 +2,7 @@
 
 use glam::{DMat3, DQuat, DVec3};
 use pipe_mpm::math::max_abs;
-use pipe_mpm::svd::{polar_rotation, svd3};
+use pipe_mpm::svd::{polar_rotation, polar_rotation_adjoint, rotation_adjoint, svd3};
 use pipe_mpm::{Constitutive, FixedCorotated};
 
 /// SplitMix64: small deterministic generator, no dependency.
@@ -185,8 +185,8 @@ fn inverted() {
 
 #[test]
 fn extreme_scales() {
-    // R is scale invariant; svd3 itself over/underflows at these scales, so the reference is
-    // the rotation of the unscaled matrix.
+    // R is scale invariant: the reference is the rotation of the unscaled matrix (svd3 at these
+    // scales is checked in tests/svd_fast.rs).
     let mut rng = Rng(77);
     let mut worst: f64 = 0.0;
     for _ in 0..2_000 {
@@ -248,4 +248,56 @@ fn fixed_corotated_stress_matches_svd_formula() {
             "{err:e} for F = {f:?}"
         );
     }
+}
+
+/// The SVD-free rotation adjoint equals `rotation_adjoint` of the SVD (relative to the largest
+/// entry) wherever it accepts `F`, and it declines inverted and nearly flat `F`.
+#[test]
+fn polar_rotation_adjoint_matches_svd_adjoint() {
+    let mut rng = Rng(0xAD70);
+    let mut worst: f64 = 0.0;
+    let mut accepted = 0;
+    for n in 0..20_000 {
+        let f = match n % 4 {
+            0 => {
+                let s = DVec3::new(
+                    rng.range(0.8, 1.2),
+                    rng.range(0.8, 1.2),
+                    rng.range(0.8, 1.2),
+                );
+                rng.usv(s)
+            }
+            1 => {
+                let s = DVec3::new(
+                    rng.log_range(0.05, 20.0),
+                    rng.log_range(0.05, 20.0),
+                    rng.log_range(0.05, 20.0),
+                );
+                rng.usv(s)
+            }
+            2 => DMat3::IDENTITY + rng.mat(0.3),
+            _ => {
+                let z = rng.range(0.5, 1.5);
+                rng.rotation() * DMat3::from_diagonal(DVec3::new(1.1, 1.1, z))
+            }
+        };
+        let gr = rng.mat(1.0);
+        let reference = rotation_adjoint(&svd3(&f), &gr);
+        if let Some(g) = polar_rotation_adjoint(&f, &polar_rotation(&f), &gr) {
+            accepted += 1;
+            let dev = max_abs(&(g - reference)) / max_abs(&reference).max(1e-300);
+            worst = worst.max(dev);
+            assert!(dev <= 1e-10, "relative deviation {dev:e} for F = {f:?}");
+        }
+    }
+    println!(
+        "polar rotation adjoint: max relative deviation {worst:.2e}, {accepted} of 20000 accepted"
+    );
+    assert!(accepted > 18_000, "only {accepted} accepted");
+    let inverted = DMat3::from_diagonal(DVec3::new(1.0, 1.0, -0.5));
+    assert!(
+        polar_rotation_adjoint(&inverted, &polar_rotation(&inverted), &DMat3::IDENTITY).is_none()
+    );
+    let flat = DMat3::from_diagonal(DVec3::new(1.0, 1e-7, 1e-7));
+    assert!(polar_rotation_adjoint(&flat, &polar_rotation(&flat), &DMat3::IDENTITY).is_none());
 }

@@ -5,10 +5,10 @@
 
 use glam::{DMat3, DVec3};
 
-use crate::g2p::{fma4, gather};
+use crate::g2p::gather;
 use crate::grid::GridSpec;
 use crate::grid_update::NodeVel;
-use crate::isa::Scalar;
+use crate::isa::{Lanes, WithLanes};
 use crate::p2g::fma3;
 
 /// One particle's G2P adjoint, including the position update `x' = hold(x + dt v')`, as a
@@ -17,7 +17,7 @@ pub(crate) struct G2pAdjoint<'a> {
     pub grid: &'a GridSpec,
     pub vgrid: &'a [NodeVel],
     /// Node gradients `v̄_i` of the particle's slab chunk, starting at x-layer `first`.
-    pub chunk: &'a mut [DVec3],
+    pub chunk: &'a mut [NodeVel],
     pub first: usize,
     pub dt: f64,
     /// Particles closer than this (m) to a domain wall may have been held there.
@@ -29,11 +29,11 @@ pub(crate) struct G2pAdjoint<'a> {
     pub gc: &'a DMat3,
 }
 
-impl pulp::NullaryFnOnce for G2pAdjoint<'_> {
+impl WithLanes for G2pAdjoint<'_> {
     type Output = (DVec3, DVec3);
 
     #[inline(always)]
-    fn call(self) -> (DVec3, DVec3) {
+    fn with<L: Lanes>(self, l: L) -> (DVec3, DVec3) {
         let G2pAdjoint {
             grid,
             vgrid,
@@ -52,13 +52,13 @@ impl pulp::NullaryFnOnce for G2pAdjoint<'_> {
         let mask = if margin > reach {
             DVec3::ONE
         } else {
-            let unclamped = x + dt * gather(Scalar, grid, vgrid, x).0;
+            let unclamped = x + dt * gather(l, grid, vgrid, x).0;
             let held = unclamped.clamp(grid.domain.lo, grid.domain.hi);
             DVec3::select(unclamped.cmpeq(held), DVec3::ONE, DVec3::ZERO)
         };
         let gxn = gx * mask;
         let gv = gv + dt * gxn;
-        let gx_w = g2p_adjoint_particle(grid, vgrid, chunk, first, x, gv, gc);
+        let gx_w = g2p_adjoint_particle(l, grid, vgrid, chunk, first, x, gv, gc);
         (gxn + gx_w, gv)
     }
 }
@@ -73,10 +73,11 @@ impl pulp::NullaryFnOnce for G2pAdjoint<'_> {
 /// terms `Σ wz_k v_k·y_k` and `Σ wz'_k v_k·y_k` with two dot products each.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-pub(crate) fn g2p_adjoint_particle(
+pub(crate) fn g2p_adjoint_particle<L: Lanes>(
+    l: L,
     grid: &GridSpec,
     vgrid: &[NodeVel],
-    chunk: &mut [DVec3],
+    chunk: &mut [NodeVel],
     first: usize,
     x: DVec3,
     gv: DVec3,
@@ -90,8 +91,20 @@ pub(crate) fn g2p_adjoint_particle(
     let dwz = [st.dw[0].z, st.dw[1].z, st.dw[2].z];
     let wzpz: [f64; 3] = std::array::from_fn(|k| wz[k] * p[k].z);
     let dwzpz: [f64; 3] = std::array::from_fn(|k| dwz[k] * p[k].z);
-    let dot = |a: [f64; 4], b: DVec3| a[2].mul_add(b.z, a[1].mul_add(b.y, a[0] * b.x));
-    let (mut v, mut gx) = ([0.0; 4], DVec3::ZERO);
+    let (swz, swzpz, sdwz, sdwzpz) = (
+        wz.map(|w| l.splat(w)),
+        wzpz.map(|w| l.splat(w)),
+        dwz.map(|w| l.splat(w)),
+        dwzpz.map(|w| l.splat(w)),
+    );
+    let lanes3 = |v: DVec3| l.load([v.x, v.y, v.z, 0.0]);
+    let gz = lanes3(gcd.z_axis);
+    let dot = |a: L::V, b: DVec3| {
+        let a = l.store(a);
+        a[2].mul_add(b.z, a[1].mul_add(b.y, a[0] * b.x))
+    };
+    let zero = l.splat(0.0);
+    let (mut v, mut gx) = (zero, DVec3::ZERO);
     for i in 0..3 {
         let (wx, dwx) = (st.w[i].x, st.dw[i].x);
         let y_x = fma3(gcd.x_axis, p[i].x, gv);
@@ -100,23 +113,26 @@ pub(crate) fn g2p_adjoint_particle(
             let y_xy = fma3(gcd.y_axis, pj.y, y_x);
             let wxy = wx * wy;
             let row = grid.row(vgrid, st.local, i, j);
-            let (mut s, mut sp, mut ds, mut dsp) = ([0.0; 4], [0.0; 4], [0.0; 4], [0.0; 4]);
+            let (mut s, mut sp, mut ds, mut dsp) = (zero, zero, zero, zero);
             for k in 0..3 {
-                let vk = row[k].lanes();
-                s = fma4(vk, wz[k], s);
-                sp = fma4(vk, wzpz[k], sp);
-                ds = fma4(vk, dwz[k], ds);
-                dsp = fma4(vk, dwzpz[k], dsp);
+                let vk = l.load(row[k].lanes());
+                s = l.fma(vk, swz[k], s);
+                sp = l.fma(vk, swzpz[k], sp);
+                ds = l.fma(vk, sdwz[k], ds);
+                dsp = l.fma(vk, sdwzpz[k], dsp);
             }
+            let y = lanes3(y_xy);
             let out = grid.row_mut(chunk, first, st.local, i, j);
             for (k, o) in out.iter_mut().enumerate() {
-                *o = fma3(gcd.z_axis, wxy * wzpz[k], fma3(y_xy, wxy * wz[k], *o));
+                let (w, wp) = (l.splat(wxy * wz[k]), l.splat(wxy * wzpz[k]));
+                *o = NodeVel::from_lanes(l.store(l.fma(gz, wp, l.fma(y, w, l.load(o.lanes())))));
             }
             let sw = dot(sp, gcd.z_axis) + dot(s, y_xy);
             let sdw = dot(dsp, gcd.z_axis) + dot(ds, y_xy);
-            v = fma4(s, wxy, v);
+            v = l.fma(s, l.splat(wxy), v);
             gx += DVec3::new(dwx * wy * sw, wx * dwy * sw, wxy * sdw);
         }
     }
+    let v = l.store(v);
     gx * grid.inv_dx - gcd.transpose() * DVec3::new(v[0], v[1], v[2])
 }

@@ -6,14 +6,14 @@ use rayon::prelude::*;
 
 use crate::boundary::Boundaries;
 use crate::grid::GridSpec;
-use crate::grid_update::mass_threshold;
+use crate::grid_update::{NodeVel, mass_threshold};
 use crate::p2g::Node;
 
 /// Node gradients `(∂L/∂mv, ∂L/∂m)` stored as a [`Node`].
 pub(crate) fn grid_update_adjoint(
     grid: &GridSpec,
     nodes: &[Node],
-    g_vgrid: &[DVec3],
+    g_vgrid: &[NodeVel],
     dt: f64,
     g: DVec3,
     bc: &Boundaries,
@@ -25,9 +25,9 @@ pub(crate) fn grid_update_adjoint(
         .zip(g_vgrid.par_iter())
         .enumerate()
         .map(|(i, (n, gv))| {
-            if n.m > thr && *gv != DVec3::ZERO {
+            if n.m > thr && gv.v != DVec3::ZERO {
                 let v = n.mv / n.m + dt * g;
-                let gpre = bc.adjoint(grid, grid.node_pos(grid.unlinear(i)), v, *gv);
+                let gpre = bc.adjoint(grid, grid.node_pos(grid.unlinear(i)), v, gv.v);
                 Node {
                     mv: gpre / n.m,
                     m: -gpre.dot(n.mv) / (n.m * n.m),

@@ -14,6 +14,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::error::MpmError;
+use crate::grid_update::NodeVel;
 use crate::isa::Isa;
 use crate::models::Constitutive;
 use crate::p2g::Node;
@@ -25,7 +26,7 @@ use crate::state::{FamilyGrad, Material, MaterialGrad, State, StateGrad};
 #[derive(Debug, Default)]
 pub(crate) struct AdjointWork {
     pub(crate) fwd: Work,
-    g_vgrid: Vec<DVec3>,
+    g_vgrid: Vec<NodeVel>,
     g_nodes: Vec<Node>,
     /// `(x̄, v̄)` after the G2P adjoint, in bin order.
     g2p: Vec<(DVec3, DVec3)>,
@@ -112,7 +113,7 @@ impl<M: Constitutive> Simulator<M> {
         // v̄' = v̄ + dt x̄'; x̄ gets the weight and offset terms; the node gradients v̄_i are
         // scattered in the same pass. Outputs go to `aw.g2p` in bin order, then to g.x, g.v.
         aw.g_vgrid.clear();
-        aw.g_vgrid.resize(grid.len(), DVec3::ZERO);
+        aw.g_vgrid.resize(grid.len(), NodeVel::default());
         let isa = Isa::detect();
         aw.g2p.resize(s.len(), (DVec3::ZERO, DVec3::ZERO));
         {
@@ -123,7 +124,7 @@ impl<M: Constitutive> Simulator<M> {
                 &mut aw.g_vgrid,
                 &mut aw.g2p,
                 |p, o, chunk, first| {
-                    *o = isa.run(g2p::G2pAdjoint {
+                    *o = isa.run_lanes(g2p::G2pAdjoint {
                         grid,
                         vgrid: &w.vgrid,
                         chunk,
@@ -170,7 +171,7 @@ impl<M: Constitutive> Simulator<M> {
             .enumerate()
             .map(|(p, (gx, gv, gc, gf, gmass, gvol, gmu, glam, gfam))| {
                 let extra = w.extra.as_ref().map_or(DVec3::ZERO, |e| e[p]);
-                let pg = isa.run(p2g::P2gAdjoint {
+                let pg = isa.run_lanes(p2g::P2gAdjoint {
                     grid,
                     g_nodes,
                     dt,

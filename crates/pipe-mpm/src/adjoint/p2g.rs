@@ -6,8 +6,8 @@
 
 use glam::{DMat3, DVec3};
 
-use crate::g2p::{fma4, mul4};
 use crate::grid::GridSpec;
+use crate::isa::{Lanes, WithLanes};
 use crate::math::ddot;
 use crate::p2g::{Node, affine, fma3};
 
@@ -36,12 +36,12 @@ pub(crate) struct P2gAdjoint<'a> {
     pub extra: DVec3,
 }
 
-impl pulp::NullaryFnOnce for P2gAdjoint<'_> {
+impl WithLanes for P2gAdjoint<'_> {
     type Output = P2gGrad;
 
     #[inline(always)]
-    fn call(self) -> P2gGrad {
-        p2g_adjoint_particle(&self)
+    fn with<L: Lanes>(self, l: L) -> P2gGrad {
+        p2g_adjoint_particle(l, &self)
     }
 }
 
@@ -52,7 +52,7 @@ impl pulp::NullaryFnOnce for P2gAdjoint<'_> {
 /// each) give the weight-gradient factors `Σ_k wz_k t_k` and `Σ_k wz'_k t_k` of
 /// `t_k = m̄v_k·(mom_ij + A₂ pz_k) + m m̄_k` with two dot products each.
 #[inline(always)]
-pub(crate) fn p2g_adjoint_particle(inp: &P2gAdjoint<'_>) -> P2gGrad {
+pub(crate) fn p2g_adjoint_particle<L: Lanes>(l: L, inp: &P2gAdjoint<'_>) -> P2gGrad {
     let P2gAdjoint {
         grid,
         g_nodes,
@@ -74,50 +74,63 @@ pub(crate) fn p2g_adjoint_particle(inp: &P2gAdjoint<'_>) -> P2gGrad {
     let dwz = [st.dw[0].z, st.dw[1].z, st.dw[2].z];
     let wzpz: [f64; 3] = std::array::from_fn(|k| wz[k] * p[k].z);
     let dwzpz: [f64; 3] = std::array::from_fn(|k| dwz[k] * p[k].z);
+    let (swz, swzpz, sdwz, sdwzpz) = (
+        wz.map(|w| l.splat(w)),
+        wzpz.map(|w| l.splat(w)),
+        dwz.map(|w| l.splat(w)),
+        dwzpz.map(|w| l.splat(w)),
+    );
     // `a·(b, mass)` over four lanes, and over the first three.
-    let dot4 = |a: [f64; 4], b: DVec3| {
+    let dot4 = |a: L::V, b: DVec3| {
+        let a = l.store(a);
         a[3].mul_add(mass, a[2].mul_add(b.z, a[1].mul_add(b.y, a[0] * b.x)))
     };
-    let dot3 = |a: [f64; 4], b: DVec3| a[2].mul_add(b.z, a[1].mul_add(b.y, a[0] * b.x));
-    let (mut ga0, mut ga2, mut sum_wg) = ([0.0; 4], [0.0; 4], [0.0; 4]);
-    let mut by_j = [[0.0; 4]; 3];
+    let dot3 = |a: L::V, b: DVec3| {
+        let a = l.store(a);
+        a[2].mul_add(b.z, a[1].mul_add(b.y, a[0] * b.x))
+    };
+    let zero = l.splat(0.0);
+    let (mut ga0, mut ga2, mut sum_wg) = (zero, zero, zero);
+    let mut by_j = [zero; 3];
     let mut gx = DVec3::ZERO;
     for i in 0..3 {
         let (wx, dwx, px) = (st.w[i].x, st.dw[i].x, p[i].x);
-        let mut s_i = [0.0; 4];
+        let mut s_i = zero;
         let mom_x = fma3(a.x_axis, px, mom);
         for (j, b) in by_j.iter_mut().enumerate() {
             let (wy, dwy, py) = (st.w[j].y, st.dw[j].y, p[j].y);
             let mom_xy = fma3(a.y_axis, py, mom_x);
             let row = grid.row(g_nodes, st.local, i, j);
-            let (mut s, mut sp, mut ds, mut dsp) = ([0.0; 4], [0.0; 4], [0.0; 4], [0.0; 4]);
+            let (mut s, mut sp, mut ds, mut dsp) = (zero, zero, zero, zero);
             for k in 0..3 {
-                let n = row[k];
-                let nk = [n.mv.x, n.mv.y, n.mv.z, n.m];
-                s = fma4(nk, wz[k], s);
-                sp = fma4(nk, wzpz[k], sp);
-                ds = fma4(nk, dwz[k], ds);
-                dsp = fma4(nk, dwzpz[k], dsp);
+                let nk = l.load(row[k].lanes());
+                s = l.fma(nk, swz[k], s);
+                sp = l.fma(nk, swzpz[k], sp);
+                ds = l.fma(nk, sdwz[k], ds);
+                dsp = l.fma(nk, sdwzpz[k], dsp);
             }
             let sw = dot3(sp, a.z_axis) + dot4(s, mom_xy);
             let sdw = dot3(dsp, a.z_axis) + dot4(ds, mom_xy);
             let wxy = wx * wy;
-            s_i = fma4(s, wy, s_i);
-            *b = fma4(s, wxy, *b);
-            ga2 = fma4(sp, wxy, ga2);
+            s_i = l.fma(s, l.splat(wy), s_i);
+            *b = l.fma(s, l.splat(wxy), *b);
+            ga2 = l.fma(sp, l.splat(wxy), ga2);
             gx += DVec3::new(dwx * wy * sw, wx * dwy * sw, wxy * sdw);
         }
-        ga0 = fma4(s_i, wx * px, ga0);
-        sum_wg = fma4(s_i, wx, sum_wg);
+        ga0 = l.fma(s_i, l.splat(wx * px), ga0);
+        sum_wg = l.fma(s_i, l.splat(wx), sum_wg);
     }
-    let ga1 = fma4(
+    let ga1 = l.fma(
         by_j[2],
-        p[2].y,
-        fma4(by_j[1], p[1].y, mul4(by_j[0], p[0].y)),
+        l.splat(p[2].y),
+        l.fma(by_j[1], l.splat(p[1].y), l.mul(by_j[0], l.splat(p[0].y))),
     );
-    let v3 = |a: [f64; 4]| DVec3::new(a[0], a[1], a[2]);
+    let v3 = |a: L::V| {
+        let a = l.store(a);
+        DVec3::new(a[0], a[1], a[2])
+    };
     let ga = DMat3::from_cols(v3(ga0), v3(ga1), v3(ga2));
-    let sum_wm = sum_wg[3];
+    let sum_wm = l.store(sum_wg)[3];
     let sum_wg = v3(sum_wg);
     P2gGrad {
         x: gx * grid.inv_dx - a.transpose() * sum_wg,

@@ -6,7 +6,7 @@ use glam::DMat3;
 use super::{Constitutive, ModelGrad};
 use crate::math::{cofactor, ddot, trace};
 use crate::state::FamilyGrad;
-use crate::svd::{polar_rotation, rotation_adjoint, svd3};
+use crate::svd::{polar_rotation, polar_rotation_adjoint, rotation_adjoint, svd3};
 
 /// Fixed-corotated elastic solid.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -33,8 +33,7 @@ impl Constitutive for FixedCorotated {
         g_f: &DMat3,
         g_tau: &DMat3,
     ) -> ModelGrad {
-        let d = svd3(f);
-        let r = d.u * d.v.transpose();
+        let r = polar_rotation(f);
         let j = f.determinant();
         let tr_g = trace(g_tau);
         let gt = g_tau.transpose();
@@ -42,7 +41,9 @@ impl Constitutive for FixedCorotated {
         let mut g = *g_f + ((*g_tau + gt) * *f - gt * r) * (2.0 * mu);
         g += cofactor(f) * (lam * (2.0 * j - 1.0) * tr_g);
         let g_r = *g_tau * *f * (-2.0 * mu);
-        g += rotation_adjoint(&d, &g_r);
+        // The rotation's adjoint from R alone where F is well inside det F > 0, else via the SVD.
+        g +=
+            polar_rotation_adjoint(f, &r, &g_r).unwrap_or_else(|| rotation_adjoint(&svd3(f), &g_r));
         ModelGrad {
             f_tmp: g,
             c: DMat3::ZERO,
