@@ -14,7 +14,8 @@
 //!   N = 20k, G = 32, nh and fcr, threads from `MPM_AD_THREADS` (default 1), median of 3.
 //! * `MPM_ROLLOUT=run|tape|tape+bwd`: one differentiable rollout of `MPM_FRAMES` (14) frames of
 //!   `MPM_SUBSTEPS_PER_FRAME` (50) substeps, N = 20k, G = 32, nh, checkpoint per frame; for
-//!   peak-memory measurements with `/usr/bin/time -v` (`run` = plain forward, no tape).
+//!   peak-memory measurements with `/usr/bin/time -v` (`run` = plain forward, no tape);
+//!   `MPM_SNAPSHOTS` sets [`BackwardOptions::snapshots`] (default 4).
 //! * `MPM_SWEEP_THREADS` (default 2): threads of the `sweep_fcr` particle-count sweep.
 
 use divan::Bencher;
@@ -148,7 +149,10 @@ fn rollout(mode: &str) {
                     &tape,
                     &mat,
                     |k, _| (k % spf == 0 && k > 0).then(|| seed.clone()),
-                    BackwardOptions::default(),
+                    BackwardOptions {
+                        snapshots: env_usize("MPM_SNAPSHOTS", pipe_mpm::adjoint::SEGMENT_SNAPSHOTS),
+                        ..Default::default()
+                    },
                 )
                 .unwrap();
             }

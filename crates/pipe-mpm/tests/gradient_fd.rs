@@ -259,7 +259,8 @@ fn newtonian_fd() {
     check("newtonian", true, &[], |_| Newtonian, |_| vec![]);
 }
 
-/// Checkpoint interval and truncation: every interval gives bit-identical gradients, and a
+/// Checkpoint interval, snapshots and truncation: every interval and every number of recomputed
+/// snapshots gives bit-identical gradients, and a
 /// gradient truncated to the last `k` substeps equals a fresh run started at substep `n − k`
 /// (to rounding: the fresh run orders its particles by their cells at `n − k`, which changes
 /// the order of the grid sums).
@@ -289,6 +290,28 @@ fn checkpoint_interval_and_truncation() {
             }
         }
     }
+    // Any number of recomputed snapshots gives the same gradients, bit for bit; 0 is refused.
+    let mut s = s0.clone();
+    let tape = sim.forward_tape(&mut s, &mat, 0.0, N_SUB, N_SUB).unwrap();
+    let r = reference.as_ref().unwrap();
+    for snapshots in [0, 1, 2, 3, 11, 40] {
+        let g = sim.backward(
+            &tape,
+            &mat,
+            |k, _| (k == N_SUB).then(|| g0.clone()),
+            BackwardOptions {
+                snapshots,
+                ..Default::default()
+            },
+        );
+        match g {
+            Ok(g) => {
+                assert_eq!(r.state, g.state, "snapshots = {snapshots}");
+                assert_eq!(r.material, g.material, "snapshots = {snapshots}");
+            }
+            Err(e) => assert_eq!(snapshots, 0, "{e}"),
+        }
+    }
     let k = 4;
     let mut s = s0.clone();
     let tape = sim.forward_tape(&mut s, &mat, 0.0, N_SUB, 5).unwrap();
@@ -297,7 +320,10 @@ fn checkpoint_interval_and_truncation() {
             &tape,
             &mat,
             |kk, _| (kk == N_SUB).then(|| g0.clone()),
-            BackwardOptions { truncate: Some(k) },
+            BackwardOptions {
+                truncate: Some(k),
+                ..Default::default()
+            },
         )
         .unwrap();
     assert_eq!(gt.start, N_SUB - k);

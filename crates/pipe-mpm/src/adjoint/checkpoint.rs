@@ -2,9 +2,9 @@
 //!
 //! The forward pass keeps the state every `every` substeps (a frame boundary); the backward pass
 //! reverses one segment at a time, recomputing states from the segment start with at most
-//! [`SEGMENT_SNAPSHOTS`] of them alive (a binomial schedule, [`super::schedule`]), so memory is
-//! O((n/every + SEGMENT_SNAPSHOTS) · particles) whatever the segment length. Short segments
-//! (≤ SEGMENT_SNAPSHOTS + 1 substeps) also keep each recomputed substep's intermediates (τ,
+//! [`BackwardOptions::snapshots`] (default [`SEGMENT_SNAPSHOTS`]) of them alive (a binomial
+//! schedule, [`super::schedule`]), so memory is O((n/every + snapshots) · particles) whatever
+//! the segment length. Short segments (≤ snapshots + 1 substeps) also keep each recomputed substep's intermediates (τ,
 //! bins, grid), so their adjoint steps skip the forward recomputation.
 
 use std::borrow::Cow;
@@ -72,10 +72,24 @@ impl SeedState<'_> {
 }
 
 /// Options of [`Simulator::backward`].
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct BackwardOptions {
     /// Backpropagate through only the last `n` substeps (e.g. one frame); `None` = all.
     pub truncate: Option<usize>,
+    /// Recomputed states kept alive while a segment is reversed (≥ 1; default
+    /// [`SEGMENT_SNAPSHOTS`]): the memory/time trade of the backward pass. A segment of `k`
+    /// substeps costs about `k·r` recomputed substeps with `C(c + r, c) ≥ k` for `c` snapshots;
+    /// `c ≥ k − 1` recomputes each substep once, keeping its intermediates.
+    pub snapshots: usize,
+}
+
+impl Default for BackwardOptions {
+    fn default() -> Self {
+        Self {
+            truncate: None,
+            snapshots: SEGMENT_SNAPSHOTS,
+        }
+    }
 }
 
 /// Result of [`Simulator::backward`].
@@ -131,7 +145,7 @@ impl<M: Constitutive> Simulator<M> {
     /// [`SeedState::get`] builds the state only for the seeds that read it.
     /// A non-finite gradient stops the pass with [`MpmError::NonFinite`] naming the substep.
     ///
-    /// Each segment is reversed with at most [`SEGMENT_SNAPSHOTS`] recomputed states alive
+    /// Each segment is reversed with at most [`BackwardOptions::snapshots`] recomputed states alive
     /// besides the tape (binomial schedule, see [`super::schedule`]).
     pub fn backward(
         &self,
@@ -206,6 +220,13 @@ impl<M: Constitutive> Simulator<M> {
                 "seed gradient length differs from the particle count",
             ));
         }
+        if opts.snapshots == 0 {
+            return Err(MpmError::InvalidParameter {
+                field: "snapshots",
+                value: 0.0,
+                reason: "must be >= 1",
+            });
+        }
         let start = n - opts.truncate.unwrap_or(n).min(n);
         let mut rev = Reverser {
             sim: self,
@@ -216,11 +237,12 @@ impl<M: Constitutive> Simulator<M> {
             g,
             gmat: MaterialGrad::zeros(np),
             aw: AdjointWork::default(),
-            stack: Vec::with_capacity(SEGMENT_SNAPSHOTS + 1),
+            stack: Vec::with_capacity(opts.snapshots + 1),
+            snapshots: opts.snapshots,
             spare: Vec::new(),
             spare_work: Vec::new(),
             keep: false,
-            plan: Schedule::new(tape.every.min(n.max(1)), SEGMENT_SNAPSHOTS),
+            plan: Schedule::new(tape.every.min(n.max(1)), opts.snapshots),
         };
         for (j, ck) in tape.checkpoints.iter().enumerate().rev() {
             let lo = j * tape.every;
@@ -254,7 +276,9 @@ struct Reverser<'a, M: Constitutive, S> {
     spare: Vec<State>,
     /// Released intermediates buffers, likewise.
     spare_work: Vec<Work>,
-    /// Keep each recomputed substep's intermediates (segments of ≤ SEGMENT_SNAPSHOTS + 1).
+    /// Snapshots alive at once ([`BackwardOptions::snapshots`]).
+    snapshots: usize,
+    /// Keep each recomputed substep's intermediates (segments of ≤ snapshots + 1).
     keep: bool,
     plan: Schedule,
 }
@@ -265,9 +289,9 @@ impl<M: Constitutive, S: FnMut(usize, &State) -> Option<StateGrad>> Reverser<'_,
         debug_assert!(self.stack.is_empty());
         let a = lo.max(self.start);
         let free = if lo < a {
-            SEGMENT_SNAPSHOTS.max(2) - 1
+            self.snapshots.max(2) - 1
         } else {
-            SEGMENT_SNAPSHOTS
+            self.snapshots
         };
         self.keep = hi - a <= free + 1;
         if lo < a {
@@ -329,7 +353,7 @@ impl<M: Constitutive, S: FnMut(usize, &State) -> Option<StateGrad>> Reverser<'_,
     /// recompute the state at the planned split `m`, reverse `m..b` with one snapshot fewer,
     /// release it, then continue with `a..m` (a loop, so recursion depth ≤ `free`).
     ///
-    /// When the whole segment fits in the snapshots (at most SEGMENT_SNAPSHOTS + 1 substeps,
+    /// When the whole segment fits in the snapshots (at most snapshots + 1 substeps,
     /// every split is one substep) the intermediates of each recomputed substep are kept too,
     /// so only the segment's last substep is recomputed for its adjoint.
     fn reverse(&mut self, ck: &State, a: usize, b: usize, free: usize) -> Result<(), MpmError> {
