@@ -2,8 +2,7 @@
 //! `F = U diag(σ) Vᵀ` with random rotations `U`, `V` and stretches σ uniform in [0.8, 1.2] (plus
 //! a near-rest set, σ in [0.99, 1.01]). Counter = matrices, so divan's time per item is ns/matrix.
 //!
-//! * full SVD: `svd3` (warm-started Jacobi) against `svd3_jacobi` (cold-start reference) and
-//!   `svd3_before` (a verbatim copy of the cold-start `svd3` before the warm start);
+//! * full SVD: `svd3` (warm-started Jacobi) against `svd3_jacobi` (the cold-start reference);
 //! * rotation `R = U Vᵀ`: `svd3` against `polar_rotation` (scaled Newton).
 //!
 //! `CARGO_TARGET_DIR=/work/target-bench cargo bench -p pipe-mpm --bench svd`
@@ -96,83 +95,4 @@ fn svd3_warm(b: Bencher, w: f64) {
 #[divan::bench(args = [0.2, 0.01], sample_count = 20)]
 fn svd3_jacobi_cold(b: Bencher, w: f64) {
     run_svd(b, w, svd3_jacobi);
-}
-
-#[divan::bench(args = [0.2, 0.01], sample_count = 20)]
-fn svd3_before_cold(b: Bencher, w: f64) {
-    run_svd(b, w, svd3_before);
-}
-
-/// The one-sided Jacobi `svd3` as it was before the warm start (for the comparison only).
-fn svd3_before(f: &DMat3) -> Svd {
-    const TINY: f64 = 1e-30;
-    const ORTHO_TOL: f64 = 2.0 * f64::EPSILON;
-    let mut b = [f.x_axis, f.y_axis, f.z_axis];
-    let mut v = [DVec3::X, DVec3::Y, DVec3::Z];
-    for _sweep in 0..30 {
-        let mut rotated = false;
-        for (p, q) in [(0usize, 1usize), (0, 2), (1, 2)] {
-            let alpha = b[p].length_squared();
-            let beta = b[q].length_squared();
-            let gamma = b[p].dot(b[q]);
-            if gamma == 0.0 || gamma.abs() <= ORTHO_TOL * (alpha * beta).sqrt() {
-                continue;
-            }
-            rotated = true;
-            let zeta = (beta - alpha) / (2.0 * gamma);
-            let t = zeta.signum() / (zeta.abs() + (1.0 + zeta * zeta).sqrt());
-            let c = 1.0 / (1.0 + t * t).sqrt();
-            let s = c * t;
-            let (bp, bq) = (b[p], b[q]);
-            b[p] = c * bp - s * bq;
-            b[q] = s * bp + c * bq;
-            let (vp, vq) = (v[p], v[q]);
-            v[p] = c * vp - s * vq;
-            v[q] = s * vp + c * vq;
-        }
-        if !rotated {
-            break;
-        }
-    }
-    let mut sig = [b[0].length(), b[1].length(), b[2].length()];
-    for i in 1..3 {
-        let mut j = i;
-        while j > 0 && sig[j] > sig[j - 1] {
-            sig.swap(j, j - 1);
-            b.swap(j, j - 1);
-            v.swap(j, j - 1);
-            j -= 1;
-        }
-    }
-    let scale = sig[0].max(f64::MIN_POSITIVE);
-    let u0 = if sig[0] > 0.0 {
-        b[0] / sig[0]
-    } else {
-        DVec3::X
-    };
-    let u1 = if sig[1] > TINY * scale {
-        b[1] / sig[1]
-    } else {
-        u0.any_orthonormal_vector()
-    };
-    let mut u2 = if sig[2] > TINY * scale {
-        b[2] / sig[2]
-    } else {
-        u0.cross(u1)
-    };
-    let mut vm = DMat3::from_cols(v[0], v[1], v[2]);
-    if vm.determinant() < 0.0 {
-        vm.z_axis = -vm.z_axis;
-        u2 = -u2;
-    }
-    let mut um = DMat3::from_cols(u0, u1, u2);
-    if um.determinant() < 0.0 {
-        um.z_axis = -um.z_axis;
-        sig[2] = -sig[2];
-    }
-    Svd {
-        u: um,
-        s: DVec3::from_array(sig),
-        v: vm,
-    }
 }

@@ -5,6 +5,7 @@
 
 use glam::{DMat3, DVec3};
 
+use super::ZWeights;
 use crate::g2p::gather;
 use crate::grid::GridSpec;
 use crate::grid_update::NodeVel;
@@ -87,15 +88,10 @@ pub(crate) fn g2p_adjoint_particle<L: Lanes>(
     let d_inv = 4.0 * grid.inv_dx * grid.inv_dx;
     let p = st.offsets(grid.dx);
     let gcd = *gc * d_inv;
-    let wz = [st.w[0].z, st.w[1].z, st.w[2].z];
-    let dwz = [st.dw[0].z, st.dw[1].z, st.dw[2].z];
-    let wzpz: [f64; 3] = std::array::from_fn(|k| wz[k] * p[k].z);
-    let dwzpz: [f64; 3] = std::array::from_fn(|k| dwz[k] * p[k].z);
-    let (swz, swzpz, sdwz, sdwzpz) = (
-        wz.map(|w| l.splat(w)),
-        wzpz.map(|w| l.splat(w)),
-        dwz.map(|w| l.splat(w)),
-        dwzpz.map(|w| l.splat(w)),
+    let zw = ZWeights::new(l, &st, &p);
+    let (wz, wzpz) = (
+        [0, 1, 2].map(|k| st.w[k].z),
+        [0, 1, 2].map(|k| st.w[k].z * p[k].z),
     );
     let lanes3 = |v: DVec3| l.load([v.x, v.y, v.z, 0.0]);
     let gz = lanes3(gcd.z_axis);
@@ -113,14 +109,7 @@ pub(crate) fn g2p_adjoint_particle<L: Lanes>(
             let y_xy = fma3(gcd.y_axis, pj.y, y_x);
             let wxy = wx * wy;
             let row = grid.row(vgrid, st.local, i, j);
-            let (mut s, mut sp, mut ds, mut dsp) = (zero, zero, zero, zero);
-            for k in 0..3 {
-                let vk = l.load(row[k].lanes());
-                s = l.fma(vk, swz[k], s);
-                sp = l.fma(vk, swzpz[k], sp);
-                ds = l.fma(vk, sdwz[k], ds);
-                dsp = l.fma(vk, sdwzpz[k], dsp);
-            }
+            let [s, sp, ds, dsp] = zw.row_sums(l, [0, 1, 2].map(|k| l.load(row[k].lanes())));
             let y = lanes3(y_xy);
             let out = grid.row_mut(chunk, first, st.local, i, j);
             for (k, o) in out.iter_mut().enumerate() {

@@ -14,13 +14,50 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::error::MpmError;
+use crate::grid::Stencil;
 use crate::grid_update::NodeVel;
-use crate::isa::Isa;
+use crate::isa::{Isa, Lanes};
 use crate::models::Constitutive;
 use crate::p2g::Node;
 use crate::scatter::scatter_with;
 use crate::sim::{Simulator, Work};
 use crate::state::{FamilyGrad, Material, MaterialGrad, State, StateGrad};
+
+/// The z-weights of a particle's stencil rows used by both adjoint kernels, as splat vectors:
+/// `w_k`, `w_k pz_k`, `w'_k`, `w'_k pz_k` for the row's nodes `k` (`w'` = d w / d fx).
+pub(crate) struct ZWeights<L: Lanes> {
+    w: [L::V; 3],
+    wp: [L::V; 3],
+    dw: [L::V; 3],
+    dwp: [L::V; 3],
+}
+
+impl<L: Lanes> ZWeights<L> {
+    /// The z-weights of stencil `st` with node offsets `p` (m).
+    #[inline(always)]
+    pub(crate) fn new(l: L, st: &Stencil, p: &[DVec3; 3]) -> Self {
+        Self {
+            w: std::array::from_fn(|k| l.splat(st.w[k].z)),
+            wp: std::array::from_fn(|k| l.splat(st.w[k].z * p[k].z)),
+            dw: std::array::from_fn(|k| l.splat(st.dw[k].z)),
+            dwp: std::array::from_fn(|k| l.splat(st.dw[k].z * p[k].z)),
+        }
+    }
+
+    /// `Σ_k (w_k, w_k pz_k, w'_k, w'_k pz_k) n_k` over a row's three nodes `n`.
+    #[inline(always)]
+    pub(crate) fn row_sums(&self, l: L, n: [L::V; 3]) -> [L::V; 4] {
+        let zero = l.splat(0.0);
+        let mut out = [zero; 4];
+        for (k, nk) in n.into_iter().enumerate() {
+            out[0] = l.fma(nk, self.w[k], out[0]);
+            out[1] = l.fma(nk, self.wp[k], out[1]);
+            out[2] = l.fma(nk, self.dw[k], out[2]);
+            out[3] = l.fma(nk, self.dwp[k], out[3]);
+        }
+        out
+    }
+}
 
 /// Scratch buffers of the backward pass (reused across substeps).
 #[derive(Debug, Default)]

@@ -6,6 +6,7 @@
 
 use glam::{DMat3, DVec3};
 
+use super::ZWeights;
 use crate::grid::GridSpec;
 use crate::isa::{Lanes, WithLanes};
 use crate::math::ddot;
@@ -70,16 +71,7 @@ pub(crate) fn p2g_adjoint_particle<L: Lanes>(l: L, inp: &P2gAdjoint<'_>) -> P2gG
     let a = affine(grid, dt, volume, mass, tau, c);
     let mom = v * mass + extra;
     let p = st.offsets(grid.dx);
-    let wz = [st.w[0].z, st.w[1].z, st.w[2].z];
-    let dwz = [st.dw[0].z, st.dw[1].z, st.dw[2].z];
-    let wzpz: [f64; 3] = std::array::from_fn(|k| wz[k] * p[k].z);
-    let dwzpz: [f64; 3] = std::array::from_fn(|k| dwz[k] * p[k].z);
-    let (swz, swzpz, sdwz, sdwzpz) = (
-        wz.map(|w| l.splat(w)),
-        wzpz.map(|w| l.splat(w)),
-        dwz.map(|w| l.splat(w)),
-        dwzpz.map(|w| l.splat(w)),
-    );
+    let zw = ZWeights::new(l, &st, &p);
     // `a·(b, mass)` over four lanes, and over the first three.
     let dot4 = |a: L::V, b: DVec3| {
         let a = l.store(a);
@@ -101,14 +93,7 @@ pub(crate) fn p2g_adjoint_particle<L: Lanes>(l: L, inp: &P2gAdjoint<'_>) -> P2gG
             let (wy, dwy, py) = (st.w[j].y, st.dw[j].y, p[j].y);
             let mom_xy = fma3(a.y_axis, py, mom_x);
             let row = grid.row(g_nodes, st.local, i, j);
-            let (mut s, mut sp, mut ds, mut dsp) = (zero, zero, zero, zero);
-            for k in 0..3 {
-                let nk = l.load(row[k].lanes());
-                s = l.fma(nk, swz[k], s);
-                sp = l.fma(nk, swzpz[k], sp);
-                ds = l.fma(nk, sdwz[k], ds);
-                dsp = l.fma(nk, sdwzpz[k], dsp);
-            }
+            let [s, sp, ds, dsp] = zw.row_sums(l, [0, 1, 2].map(|k| l.load(row[k].lanes())));
             let sw = dot3(sp, a.z_axis) + dot4(s, mom_xy);
             let sdw = dot3(dsp, a.z_axis) + dot4(ds, mom_xy);
             let wxy = wx * wy;
