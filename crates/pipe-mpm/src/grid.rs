@@ -5,7 +5,10 @@
 //! particle domain (an AABB) plus a margin, so that every particle kept inside the AABB has all
 //! 27 stencil nodes inside the grid.
 
+use std::ops::Range;
+
 use glam::{DVec3, IVec3};
+use rayon::prelude::*;
 
 use crate::error::MpmError;
 
@@ -205,6 +208,52 @@ impl GridSpec {
         let moved = c != *x;
         *x = c;
         moved
+    }
+}
+
+/// The nodes a set of particles touches, as x-layers `x` and y-rows `y` (all of z): in the
+/// x-major layout each layer's part is one contiguous index range.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct NodeBox {
+    /// Local x indices.
+    pub x: Range<usize>,
+    /// Local y indices.
+    pub y: Range<usize>,
+}
+
+impl NodeBox {
+    /// The box's linear index range in each of its x-layers.
+    pub fn rows(&self, grid: &GridSpec) -> impl Iterator<Item = Range<usize>> + use<> {
+        let (layer, dz) = (grid.layer(), grid.dims[2]);
+        let (y0, y1) = (self.y.start * dz, self.y.end * dz);
+        self.x.clone().map(move |x| x * layer + y0..x * layer + y1)
+    }
+
+    /// Sets the box's entries of a grid array to `v`.
+    pub fn fill<T: Clone>(&self, grid: &GridSpec, data: &mut [T], v: T) {
+        for r in self.rows(grid) {
+            data[r].fill(v.clone());
+        }
+    }
+
+    /// Calls `f(index, entry)` for the box's entries of a grid array, in parallel over layers.
+    pub fn par_for_each<T: Send>(
+        &self,
+        grid: &GridSpec,
+        data: &mut [T],
+        f: impl Fn(usize, &mut T) + Sync,
+    ) {
+        let (layer, dz) = (grid.layer(), grid.dims[2]);
+        let (y0, y1) = (self.y.start * dz, self.y.end * dz);
+        data.par_chunks_mut(layer)
+            .enumerate()
+            .skip(self.x.start)
+            .take(self.x.len())
+            .for_each(|(x, l)| {
+                for (k, e) in l[y0..y1].iter_mut().enumerate() {
+                    f(x * layer + y0 + k, e);
+                }
+            });
     }
 }
 

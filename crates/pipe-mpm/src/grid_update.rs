@@ -2,10 +2,9 @@
 //! conditions; nodes below the mass threshold get `v = 0`.
 
 use glam::DVec3;
-use rayon::prelude::*;
 
 use crate::boundary::Boundaries;
-use crate::grid::GridSpec;
+use crate::grid::{GridSpec, NodeBox};
 use crate::p2g::Node;
 
 /// Mass threshold `1e-8 dx³` (kg) below which a node is considered empty (PAC-NeRF).
@@ -44,26 +43,26 @@ impl NodeVel {
     }
 }
 
-/// Node velocities (m/s) after gravity `g` (m/s²) and the boundary conditions.
+/// Node velocities (m/s) after gravity `g` (m/s²) and the boundary conditions, for the nodes
+/// of `active` (the particles' box; the rest of `out` is left as it was: nothing reads it).
 pub(crate) fn grid_update(
     grid: &GridSpec,
     nodes: &[Node],
+    active: &NodeBox,
     dt: f64,
     g: DVec3,
     bc: &Boundaries,
     out: &mut Vec<NodeVel>,
 ) {
     let thr = mass_threshold(grid.dx);
-    nodes
-        .par_iter()
-        .enumerate()
-        .map(|(i, n)| {
-            if n.m > thr {
-                let v = n.mv / n.m + dt * g;
-                NodeVel::new(bc.apply(grid, grid.node_pos(grid.unlinear(i)), v))
-            } else {
-                NodeVel::default()
-            }
-        })
-        .collect_into_vec(out);
+    out.resize(grid.len(), NodeVel::default());
+    active.par_for_each(grid, out, |i, o| {
+        let n = &nodes[i];
+        *o = if n.m > thr {
+            let v = n.mv / n.m + dt * g;
+            NodeVel::new(bc.apply(grid, grid.node_pos(grid.unlinear(i)), v))
+        } else {
+            NodeVel::default()
+        };
+    });
 }

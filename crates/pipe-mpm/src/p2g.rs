@@ -5,7 +5,7 @@
 
 use glam::{DMat3, DVec3};
 
-use crate::grid::GridSpec;
+use crate::grid::{GridSpec, NodeBox};
 use crate::isa::{Isa, Lanes, WithLanes};
 use crate::scatter::{Bins, scatter_slabs};
 
@@ -66,9 +66,24 @@ pub(crate) fn affine(
 
 /// Scatters particles into `nodes` (cleared first), one slab at a time with the best
 /// instruction set ([`Isa`]).
-pub(crate) fn p2g(grid: &GridSpec, bins: &Bins, inp: P2gIn<'_>, nodes: &mut Vec<Node>) {
-    nodes.clear();
-    nodes.resize(grid.len(), Node::default());
+///
+/// Only the nodes the particles touch (`bins.touched`) can be non-zero: `active` holds the box
+/// the previous call wrote, which is zeroed instead of the whole grid, and is set to this
+/// call's box.
+pub(crate) fn p2g(
+    grid: &GridSpec,
+    bins: &Bins,
+    inp: P2gIn<'_>,
+    nodes: &mut Vec<Node>,
+    active: &mut NodeBox,
+) {
+    if nodes.len() == grid.len() {
+        active.fill(grid, nodes, Node::default());
+    } else {
+        nodes.clear();
+        nodes.resize(grid.len(), Node::default());
+    }
+    *active = bins.touched.clone();
     let isa = Isa::detect();
     scatter_slabs(grid, bins, nodes, |ps, chunk, first| {
         isa.run_lanes(Slab {

@@ -9,7 +9,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::grid::GridSpec;
+use crate::grid::{GridSpec, NodeBox};
 
 /// Particles grouped by x-slab.
 #[derive(Debug, Clone, Default)]
@@ -18,6 +18,8 @@ pub struct Bins {
     pub order: Vec<u32>,
     /// `order[start[s]..start[s + 1]]` are the particles of slab `s`.
     pub start: Vec<usize>,
+    /// The nodes the particles' stencils touch.
+    pub touched: NodeBox,
     /// Scratch of [`Self::rebuild`] (kept to avoid allocating every substep).
     sorted: Vec<u32>,
     fill: Vec<usize>,
@@ -37,7 +39,23 @@ impl Bins {
         // `order` first holds each particle's slab, then is overwritten by the sorted indices.
         let mut slab = std::mem::take(&mut self.order);
         slab.clear();
-        slab.extend(x.iter().map(|&p| (grid.stencil(p).local[0] / 3) as u32));
+        let (mut lo, mut hi) = ([usize::MAX; 2], [0; 2]);
+        slab.extend(x.iter().map(|&p| {
+            let l = grid.stencil(p).local;
+            for a in 0..2 {
+                lo[a] = lo[a].min(l[a]);
+                hi[a] = hi[a].max(l[a]);
+            }
+            (l[0] / 3) as u32
+        }));
+        self.touched = if x.is_empty() {
+            NodeBox::default()
+        } else {
+            NodeBox {
+                x: lo[0]..hi[0] + 3,
+                y: lo[1]..hi[1] + 3,
+            }
+        };
         self.start.clear();
         self.start.resize(n_slabs + 1, 0);
         for &s in &slab {

@@ -10,7 +10,7 @@ use crate::boundary::Boundaries;
 use crate::error::MpmError;
 use crate::forces::{ParticleForce, extra_momentum};
 use crate::g2p::g2p;
-use crate::grid::{Aabb, GridSpec};
+use crate::grid::{Aabb, GridSpec, NodeBox};
 use crate::grid_update::{NodeVel, grid_update};
 use crate::models::Constitutive;
 use crate::order::Order;
@@ -75,6 +75,9 @@ pub(crate) struct Work {
     pub bins: Bins,
     pub tau: Vec<DMat3>,
     pub nodes: Vec<Node>,
+    /// Nodes `nodes` and `vgrid` hold for this substep (outside it `nodes` is zero and `vgrid`
+    /// is stale).
+    pub active: NodeBox,
     pub vgrid: Vec<NodeVel>,
     pub extra: Option<Vec<DVec3>>,
     /// Set by [`Simulator::forward`] when some new `x, v, C` or `F` is NaN/Inf (checked in the
@@ -267,10 +270,11 @@ impl<M: Constitutive> Simulator<M> {
             extra: w.extra.as_deref(),
             dt,
         };
-        p2g(&self.grid, &w.bins, inp, &mut w.nodes);
+        p2g(&self.grid, &w.bins, inp, &mut w.nodes, &mut w.active);
         grid_update(
             &self.grid,
             &w.nodes,
+            &w.active,
             dt,
             self.config.gravity,
             &self.config.boundaries,

@@ -14,7 +14,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::error::MpmError;
-use crate::grid::Stencil;
+use crate::grid::{NodeBox, Stencil};
 use crate::grid_update::NodeVel;
 use crate::isa::{Isa, Lanes};
 use crate::models::Constitutive;
@@ -64,6 +64,8 @@ impl<L: Lanes> ZWeights<L> {
 pub(crate) struct AdjointWork {
     pub(crate) fwd: Work,
     g_vgrid: Vec<NodeVel>,
+    /// Nodes of `g_vgrid` the last substep wrote (zero elsewhere).
+    g_active: NodeBox,
     g_nodes: Vec<Node>,
     /// `(x̄, v̄)` after the G2P adjoint, in bin order.
     g2p: Vec<(DVec3, DVec3)>,
@@ -140,17 +142,24 @@ impl<M: Constitutive> Simulator<M> {
             }
         };
         let v_max = w
-            .vgrid
-            .par_iter()
-            .map(|v| v.v.abs().max_element())
-            .reduce(|| 0.0, f64::max);
+            .active
+            .rows(grid)
+            .flat_map(|r| &w.vgrid[r])
+            .fold(0.0, |m: f64, v| m.max(v.v.abs().max_element()));
         let scale = grid.domain.lo.abs().max(grid.domain.hi.abs()).max_element();
         let reach = dt * v_max * (1.0 + 1e-9) + 1e-12 * (1.0 + scale);
         // G2P and the position update x' = hold(x + dt v'): x̄' passes where x' was not held,
         // v̄' = v̄ + dt x̄'; x̄ gets the weight and offset terms; the node gradients v̄_i are
         // scattered in the same pass. Outputs go to `aw.g2p` in bin order, then to g.x, g.v.
-        aw.g_vgrid.clear();
-        aw.g_vgrid.resize(grid.len(), NodeVel::default());
+        // Only the nodes of the particles' box (`w.active`) receive gradients: zero those the
+        // last substep wrote rather than the whole grid.
+        if aw.g_vgrid.len() == grid.len() {
+            aw.g_active.fill(grid, &mut aw.g_vgrid, NodeVel::default());
+        } else {
+            aw.g_vgrid.clear();
+            aw.g_vgrid.resize(grid.len(), NodeVel::default());
+        }
+        aw.g_active = w.active.clone();
         let isa = Isa::detect();
         aw.g2p.resize(s.len(), (DVec3::ZERO, DVec3::ZERO));
         {
@@ -184,6 +193,7 @@ impl<M: Constitutive> Simulator<M> {
             grid,
             &w.nodes,
             &aw.g_vgrid,
+            &w.active,
             dt,
             self.config.gravity,
             &self.config.boundaries,
