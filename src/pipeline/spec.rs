@@ -228,7 +228,13 @@ pub fn parse(
         };
         ctx.param_error("scene", &pe, &scene_keys(), &sets)
     })?;
-    if scene.path.is_relative() {
+    // A relative `path` in the file is relative to the file's folder; one given on the
+    // command line (`--set scene.path=…`) is relative to the current directory, like any
+    // other path typed there.
+    let path_from_cli = sets
+        .iter()
+        .any(|s| s.stage == "scene" && s.key_path.first().is_some_and(|k| k == "path"));
+    if scene.path.is_relative() && !path_from_cli {
         let base = path.parent().unwrap_or(Path::new("."));
         scene.path = base.join(&scene.path);
     }

@@ -203,7 +203,7 @@ fn bad_overrides_are_precise() {
 }
 
 #[test]
-fn relative_scene_path_is_anchored_at_the_file() {
+fn relative_scene_path_is_anchored_at_the_file_or_the_command_line() {
     let p = spec::parse(
         Path::new("dir/sub/p.yaml"),
         &format!("{HEAD}stages: {{source: {{value: 1}}}}\n"),
@@ -212,6 +212,18 @@ fn relative_scene_path_is_anchored_at_the_file() {
     )
     .unwrap();
     assert_eq!(p.scene.path, Path::new("dir/sub/."));
+    // A path typed on the command line is relative to the current directory instead.
+    let p = spec::parse(
+        Path::new("dir/sub/p.yaml"),
+        &format!("{HEAD}stages: {{source: {{value: 1}}}}\n"),
+        &registry(),
+        &Overrides {
+            preset: None,
+            sets: vec!["scene.path=data/scene".into()],
+        },
+    )
+    .unwrap();
+    assert_eq!(p.scene.path, Path::new("data/scene"));
 }
 
 #[test]
