@@ -4,8 +4,9 @@
 //! reverses one segment at a time, recomputing states from the segment start with at most
 //! [`BackwardOptions::snapshots`] (default [`SEGMENT_SNAPSHOTS`]) of them alive (a binomial
 //! schedule, [`super::schedule`]), so memory is O((n/every + snapshots) · particles) whatever
-//! the segment length. Short segments (≤ snapshots + 1 substeps) also keep each recomputed substep's intermediates (τ,
-//! bins, grid), so their adjoint steps skip the forward recomputation.
+//! the segment length. Short segments (≤ snapshots + 1 substeps) also keep each recomputed
+//! substep's intermediates (τ, bins, grid), so their adjoint steps skip the forward
+//! recomputation.
 
 use std::borrow::Cow;
 
@@ -145,8 +146,8 @@ impl<M: Constitutive> Simulator<M> {
     /// [`SeedState::get`] builds the state only for the seeds that read it.
     /// A non-finite gradient stops the pass with [`MpmError::NonFinite`] naming the substep.
     ///
-    /// Each segment is reversed with at most [`BackwardOptions::snapshots`] recomputed states alive
-    /// besides the tape (binomial schedule, see [`super::schedule`]).
+    /// Each segment is reversed with at most [`BackwardOptions::snapshots`] recomputed states
+    /// alive besides the tape (binomial schedule, see [`super::schedule`]).
     pub fn backward(
         &self,
         tape: &Tape,
@@ -154,6 +155,13 @@ impl<M: Constitutive> Simulator<M> {
         mut seed: impl FnMut(usize, SeedState<'_>) -> Option<StateGrad>,
         opts: BackwardOptions,
     ) -> Result<Gradients, MpmError> {
+        if opts.snapshots == 0 {
+            return Err(MpmError::InvalidParameter {
+                field: "snapshots",
+                value: 0.0,
+                reason: "must be >= 1",
+            });
+        }
         let Some(o) = &tape.order else {
             let plain = |k: usize, s: &State| {
                 seed(
@@ -219,13 +227,6 @@ impl<M: Constitutive> Simulator<M> {
             return Err(MpmError::GradientMismatch(
                 "seed gradient length differs from the particle count",
             ));
-        }
-        if opts.snapshots == 0 {
-            return Err(MpmError::InvalidParameter {
-                field: "snapshots",
-                value: 0.0,
-                reason: "must be >= 1",
-            });
         }
         let start = n - opts.truncate.unwrap_or(n).min(n);
         let mut rev = Reverser {
