@@ -147,7 +147,7 @@ impl<M: Constitutive> Simulator<M> {
     /// A non-finite gradient stops the pass with [`MpmError::NonFinite`] naming the substep.
     ///
     /// Each segment is reversed with at most [`BackwardOptions::snapshots`] recomputed states
-    /// alive besides the tape (binomial schedule, see [`super::schedule`]).
+    /// alive besides the tape (binomial schedule, see `adjoint::schedule`).
     pub fn backward(
         &self,
         tape: &Tape,
