@@ -24,7 +24,7 @@ pub(crate) fn gather<L: Lanes>(
     vgrid: &[NodeVel],
     x: DVec3,
 ) -> (DVec3, DMat3) {
-    let st = grid.stencil(x);
+    let st = grid.stencil_with(l, x);
     let d = st.offsets(grid.dx);
     let wz = [st.w[0].z, st.w[1].z, st.w[2].z].map(|w| l.splat(w));
     let wzpz: [L::V; 3] = std::array::from_fn(|k| l.splat(st.w[k].z * d[k].z));

@@ -11,6 +11,7 @@ use glam::{DVec3, IVec3};
 use rayon::prelude::*;
 
 use crate::error::MpmError;
+use crate::isa::{Lanes, Scalar};
 
 /// Axis-aligned box (m).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -174,8 +175,16 @@ impl GridSpec {
     /// Stencil of a particle at `x` (m); `x` must lie in the domain.
     #[inline(always)]
     pub fn stencil(&self, x: DVec3) -> Stencil {
+        self.stencil_with(Scalar, x)
+    }
+
+    /// [`Self::stencil`] with the floor of lanes `l` (one instruction under AVX2; the result is
+    /// the same, a floor being exact).
+    #[inline(always)]
+    pub(crate) fn stencil_with<L: Lanes>(&self, l: L, x: DVec3) -> Stencil {
         let xs = x * self.inv_dx;
-        let base = floor3(xs - DVec3::splat(0.5));
+        let h = xs - DVec3::splat(0.5);
+        let base = DVec3::new(l.floor(h.x), l.floor(h.y), l.floor(h.z));
         let fx = xs - base;
         let b = base.as_ivec3() - self.origin;
         debug_assert!(b.min_element() >= 0, "particle {x:?} below the grid");
@@ -259,14 +268,9 @@ impl NodeBox {
 
 /// `floor` without a libm call (exact for |x| < 2⁵³; the baseline x86-64 target lacks `roundsd`).
 #[inline(always)]
-fn floor1(x: f64) -> f64 {
+pub(crate) fn floor1(x: f64) -> f64 {
     let t = x as i64 as f64;
     if t > x { t - 1.0 } else { t }
-}
-
-#[inline(always)]
-fn floor3(v: DVec3) -> DVec3 {
-    DVec3::new(floor1(v.x), floor1(v.y), floor1(v.z))
 }
 
 /// Quadratic B-spline stencil of one particle: 3 weights per axis and their derivatives.

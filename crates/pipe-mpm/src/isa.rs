@@ -78,6 +78,8 @@ pub(crate) trait Lanes: Copy {
     fn fma(self, a: Self::V, b: Self::V, c: Self::V) -> Self::V;
     /// `a b`.
     fn mul(self, a: Self::V, b: Self::V) -> Self::V;
+    /// `⌊x⌋` of a scalar (exact).
+    fn floor(self, x: f64) -> f64;
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -107,6 +109,12 @@ impl Lanes for pulp::x86::V3 {
     #[inline(always)]
     fn mul(self, a: pulp::f64x4, b: pulp::f64x4) -> pulp::f64x4 {
         self.mul_f64x4(a, b)
+    }
+
+    #[inline(always)]
+    fn floor(self, x: f64) -> f64 {
+        // `roundsd` (SSE4.1, part of x86-64-v3) once inlined under these features.
+        x.floor()
     }
 }
 
@@ -140,5 +148,10 @@ impl Lanes for Scalar {
     #[inline(always)]
     fn mul(self, a: [f64; 4], b: [f64; 4]) -> [f64; 4] {
         std::array::from_fn(|l| a[l] * b[l])
+    }
+
+    #[inline(always)]
+    fn floor(self, x: f64) -> f64 {
+        crate::grid::floor1(x)
     }
 }

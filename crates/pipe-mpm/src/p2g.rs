@@ -145,7 +145,7 @@ fn scatter_particle<L: Lanes>(
     m: f64,
     a: &DMat3,
 ) {
-    let st = grid.stencil(x);
+    let st = grid.stencil_with(l, x);
     let d = st.offsets(grid.dx);
     let wz = [st.w[0].z, st.w[1].z, st.w[2].z];
     let wzpz = [wz[0] * d[0].z, wz[1] * d[1].z, wz[2] * d[2].z];

@@ -84,7 +84,7 @@ pub(crate) fn g2p_adjoint_particle<L: Lanes>(
     gv: DVec3,
     gc: &DMat3,
 ) -> DVec3 {
-    let st = grid.stencil(x);
+    let st = grid.stencil_with(l, x);
     let d_inv = 4.0 * grid.inv_dx * grid.inv_dx;
     let p = st.offsets(grid.dx);
     let gcd = *gc * d_inv;

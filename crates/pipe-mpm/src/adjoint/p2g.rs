@@ -66,7 +66,7 @@ pub(crate) fn p2g_adjoint_particle<L: Lanes>(l: L, inp: &P2gAdjoint<'_>) -> P2gG
         volume,
         extra,
     } = *inp;
-    let st = grid.stencil(x);
+    let st = grid.stencil_with(l, x);
     let d_inv = 4.0 * grid.inv_dx * grid.inv_dx;
     let a = affine(grid, dt, volume, mass, tau, c);
     let mom = v * mass + extra;
