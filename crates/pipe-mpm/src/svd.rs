@@ -407,7 +407,7 @@ fn orthogonality_defect(x: &DMat3) -> (DMat3, f64) {
 /// zero or non-finite `F` (and non-convergence, never seen) use [`svd3`] (on `F` scaled by a
 /// power of two when `‖F‖` is extreme), hence exactly `svd3(F)`'s rotation in the ordinary
 /// floating-point range.
-#[inline]
+#[inline(always)]
 pub fn polar_rotation(f: &DMat3) -> DMat3 {
     let n2 = ddot(f, f);
     if n2 > POLAR_SAFE_NORM2.0 && n2 < POLAR_SAFE_NORM2.1 {
@@ -428,7 +428,7 @@ fn polar_rescaled(f: &DMat3) -> DMat3 {
 }
 
 /// [`polar_rotation`] body for `n2 = ‖F‖_F²` in [`POLAR_SAFE_NORM2`].
-#[inline]
+#[inline(always)]
 fn polar_in_range(f: &DMat3, n2: f64) -> DMat3 {
     let mut x = *f * (3.0 / n2).sqrt();
     // F is finite here (‖F‖² < 1e200), so nothing below is NaN.
@@ -495,6 +495,7 @@ pub fn svd3_adjoint(svd: &Svd, gu: &DMat3, gs: DVec3, gv: &DMat3) -> DMat3 {
 /// and `m = (M₃₂ − M₂₃, M₁₃ − M₃₁, M₂₁ − M₁₂)`: `F̄ = R [z]×` with `(tr S · I − S) z = m`.
 /// The matrix has eigenvalues `σᵢ + σⱼ`, as in [`rotation_adjoint`]. `None` when `det F ≤ 0`
 /// or `(σ₁+σ₂)(σ₁+σ₃)(σ₂+σ₃) ≤ 1e-6 (σ₁+σ₂+σ₃)³` (use [`rotation_adjoint`] there).
+#[inline(always)]
 pub fn polar_rotation_adjoint(f: &DMat3, r: &DMat3, gr: &DMat3) -> Option<DMat3> {
     let s = r.transpose() * *f;
     let s = (s + s.transpose()) * 0.5;

@@ -10,14 +10,14 @@ mod schedule;
 pub use checkpoint::{BackwardOptions, Gradients, SeedState, Tape};
 pub use schedule::SEGMENT_SNAPSHOTS;
 
-use glam::DVec3;
+use glam::{DMat3, DVec3};
 use rayon::prelude::*;
 
 use crate::error::MpmError;
 use crate::grid::{NodeBox, Stencil};
 use crate::grid_update::NodeVel;
-use crate::isa::{Isa, Lanes};
-use crate::models::Constitutive;
+use crate::isa::{Isa, Lanes, WithLanes};
+use crate::models::{Constitutive, ModelGrad};
 use crate::p2g::Node;
 use crate::scatter::scatter_with;
 use crate::sim::{Simulator, Work};
@@ -56,6 +56,35 @@ impl<L: Lanes> ZWeights<L> {
             out[3] = l.fma(nk, self.dwp[k], out[3]);
         }
         out
+    }
+}
+
+/// One particle's P2G, constitutive and strain-prediction adjoints, as a unit of work for
+/// [`Isa::run_lanes`]; returns the P2G gradients, the model's, and `(∂L/∂C, ∂L/∂F)` of the
+/// prediction.
+struct ParticleAdjoint<'a, M> {
+    model: &'a M,
+    p2g: p2g::P2gAdjoint<'a>,
+    f: &'a DMat3,
+    mu: f64,
+    lam: f64,
+    /// `∂L/∂F_new`.
+    g_f: &'a DMat3,
+}
+
+impl<M: Constitutive> WithLanes for ParticleAdjoint<'_, M> {
+    type Output = (p2g::P2gGrad, ModelGrad, DMat3, DMat3);
+
+    #[inline(always)]
+    fn with<L: Lanes>(self, l: L) -> Self::Output {
+        let pg = p2g::p2g_adjoint_particle(l, &self.p2g);
+        let (c, dt) = (self.p2g.c, self.p2g.dt);
+        let f_tmp = self.model.predict(c, self.f, dt);
+        let mg = self
+            .model
+            .update_adjoint(&f_tmp, c, self.mu, self.lam, dt, self.g_f, &pg.tau);
+        let (gc_pred, gf_new) = self.model.predict_adjoint(c, self.f, dt, &mg.f_tmp);
+        (pg, mg, gc_pred, gf_new)
     }
 }
 
@@ -218,22 +247,25 @@ impl<M: Constitutive> Simulator<M> {
             .enumerate()
             .map(|(p, (gx, gv, gc, gf, gmass, gvol, gmu, glam, gfam))| {
                 let extra = w.extra.as_ref().map_or(DVec3::ZERO, |e| e[p]);
-                let pg = isa.run_lanes(p2g::P2gAdjoint {
-                    grid,
-                    g_nodes,
-                    dt,
-                    x: s.x[p],
-                    v: s.v[p],
-                    c: &s.c[p],
-                    tau: &w.tau[p],
-                    mass: mat.mass[p],
-                    volume: mat.volume[p],
-                    extra,
+                let (pg, mg, gc_pred, gf_new) = isa.run_lanes(ParticleAdjoint {
+                    model,
+                    p2g: p2g::P2gAdjoint {
+                        grid,
+                        g_nodes,
+                        dt,
+                        x: s.x[p],
+                        v: s.v[p],
+                        c: &s.c[p],
+                        tau: &w.tau[p],
+                        mass: mat.mass[p],
+                        volume: mat.volume[p],
+                        extra,
+                    },
+                    f: &s.f[p],
+                    mu: mat.mu[p],
+                    lam: mat.lam[p],
+                    g_f: gf,
                 });
-                let f_tmp = model.predict(&s.c[p], &s.f[p], dt);
-                let mg =
-                    model.update_adjoint(&f_tmp, &s.c[p], mat.mu[p], mat.lam[p], dt, gf, &pg.tau);
-                let (gc_pred, gf_new) = model.predict_adjoint(&s.c[p], &s.f[p], dt, &mg.f_tmp);
                 *gx += pg.x;
                 *gv = pg.v;
                 *gc = pg.c + mg.c + gc_pred;

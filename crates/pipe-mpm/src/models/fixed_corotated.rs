@@ -15,6 +15,7 @@ pub struct FixedCorotated;
 impl Constitutive for FixedCorotated {
     const NAME: &'static str = "fixed_corotated";
 
+    #[inline(always)]
     fn update(&self, f: &DMat3, _c: &DMat3, mu: f64, lam: f64, _dt: f64) -> (DMat3, DMat3) {
         // `R = U Vᵀ` of svd3 (rotation variant), without the SVD when det F > 0.
         let r = polar_rotation(f);
@@ -23,6 +24,7 @@ impl Constitutive for FixedCorotated {
         (*f, tau)
     }
 
+    #[inline(always)]
     fn update_adjoint(
         &self,
         f: &DMat3,

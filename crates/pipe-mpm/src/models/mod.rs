@@ -46,13 +46,13 @@ pub trait Constitutive: Send + Sync + std::fmt::Debug + Clone {
     const NAME: &'static str;
 
     /// Predicted deformation `F_tmp = (I + dt C) F` (dt in s, C in 1/s).
-    #[inline]
+    #[inline(always)]
     fn predict(&self, c: &DMat3, f: &DMat3, dt: f64) -> DMat3 {
         (DMat3::IDENTITY + *c * dt) * *f
     }
 
     /// Adjoint of [`Self::predict`]: returns `(∂L/∂C, ∂L/∂F)` from `∂L/∂F_tmp`.
-    #[inline]
+    #[inline(always)]
     fn predict_adjoint(&self, c: &DMat3, f: &DMat3, dt: f64, g: &DMat3) -> (DMat3, DMat3) {
         (
             *g * f.transpose() * dt,

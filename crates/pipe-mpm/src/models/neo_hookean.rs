@@ -14,12 +14,14 @@ pub struct NeoHookean;
 impl Constitutive for NeoHookean {
     const NAME: &'static str = "neo_hookean";
 
+    #[inline(always)]
     fn update(&self, f: &DMat3, _c: &DMat3, mu: f64, lam: f64, _dt: f64) -> (DMat3, DMat3) {
         let j = f.determinant();
         let tau = *f * f.transpose() * mu + DMat3::IDENTITY * (lam * j.ln() - mu);
         (*f, tau)
     }
 
+    #[inline(always)]
     fn update_adjoint(
         &self,
         f: &DMat3,
