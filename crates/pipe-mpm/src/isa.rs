@@ -80,6 +80,12 @@ pub(crate) trait Lanes: Copy {
     fn mul(self, a: Self::V, b: Self::V) -> Self::V;
     /// `⌊x⌋` of a scalar (exact).
     fn floor(self, x: f64) -> f64;
+    /// `(v₀ + v₁) + (v₂ + v₃)`, the same order for every implementation.
+    #[inline(always)]
+    fn hsum(self, v: Self::V) -> f64 {
+        let a = self.store(v);
+        (a[0] + a[1]) + (a[2] + a[3])
+    }
 }
 
 #[cfg(target_arch = "x86_64")]

@@ -12,6 +12,7 @@ use crate::forces::{ParticleForce, extra_momentum};
 use crate::g2p::g2p;
 use crate::grid::{Aabb, GridSpec, NodeBox};
 use crate::grid_update::{NodeVel, grid_update};
+use crate::isa::{Isa, Lanes, WithLanes};
 use crate::models::Constitutive;
 use crate::order::Order;
 use crate::p2g::{Node, P2gIn, p2g};
@@ -83,6 +84,42 @@ pub(crate) struct Work {
     /// Set by [`Simulator::forward`] when some new `x, v, C` or `F` is NaN/Inf (checked in the
     /// kernels, so the full scan runs only then).
     pub non_finite: bool,
+}
+
+/// Particles per parallel task of the stress pass.
+const STRESS_CHUNK: usize = 1024;
+
+/// Steps 1–4 for a chunk of particles: `F ← update((I + dt C) F_old)` and `τ`, with
+/// `F_old = f` itself when `f_old` is `None`; returns whether some new `F` is NaN/Inf.
+struct StressChunk<'a, M> {
+    model: &'a M,
+    dt: f64,
+    c: &'a [DMat3],
+    f_old: Option<&'a [DMat3]>,
+    mu: &'a [f64],
+    lam: &'a [f64],
+    f: &'a mut [DMat3],
+    tau: &'a mut [DMat3],
+}
+
+impl<M: Constitutive> WithLanes for StressChunk<'_, M> {
+    type Output = bool;
+
+    #[inline(always)]
+    fn with<L: Lanes>(self, _l: L) -> bool {
+        let mut bad = false;
+        for (p, (f, tau)) in self.f.iter_mut().zip(self.tau.iter_mut()).enumerate() {
+            let f0 = self.f_old.map_or(*f, |fo| fo[p]);
+            let ft = self.model.predict(&self.c[p], &f0, self.dt);
+            let (f_new, t_new) =
+                self.model
+                    .update(&ft, &self.c[p], self.mu[p], self.lam[p], self.dt);
+            *f = f_new;
+            *tau = t_new;
+            bad |= !f_new.is_finite();
+        }
+        bad
+    }
 }
 
 /// A differentiable MLS-MPM simulator for one constitutive model `M`.
@@ -213,20 +250,25 @@ impl<M: Constitutive> Simulator<M> {
                 Some(src) => (&src.c, Some(&src.f)),
                 None => (&s.c, None),
             };
-            w.non_finite = s
-                .f
-                .par_iter_mut()
-                .zip(w.tau.par_iter_mut())
-                .enumerate()
-                .map(|(p, (f, tau))| {
-                    let f0 = f_old.map_or(*f, |fo| fo[p]);
-                    let ft = model.predict(&c_old[p], &f0, dt);
-                    let (f_new, t_new) = model.update(&ft, &c_old[p], mat.mu[p], mat.lam[p], dt);
-                    *f = f_new;
-                    *tau = t_new;
-                    !f_new.is_finite()
-                })
-                .reduce(|| false, |a, b| a | b);
+            let isa = Isa::detect();
+            w.non_finite =
+                s.f.par_chunks_mut(STRESS_CHUNK)
+                    .zip(w.tau.par_chunks_mut(STRESS_CHUNK))
+                    .enumerate()
+                    .map(|(k, (f, tau))| {
+                        let first = k * STRESS_CHUNK;
+                        isa.run_lanes(StressChunk {
+                            model,
+                            dt,
+                            c: &c_old[first..first + f.len()],
+                            f_old: f_old.map(|fo| &fo[first..first + f.len()]),
+                            mu: &mat.mu[first..first + f.len()],
+                            lam: &mat.lam[first..first + f.len()],
+                            f,
+                            tau,
+                        })
+                    })
+                    .reduce(|| false, |a, b| a | b);
         }
         let x_old = match src {
             Some(src) => {

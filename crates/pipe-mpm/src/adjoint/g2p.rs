@@ -95,10 +95,6 @@ pub(crate) fn g2p_adjoint_particle<L: Lanes>(
     );
     let lanes3 = |v: DVec3| l.load([v.x, v.y, v.z, 0.0]);
     let gz = lanes3(gcd.z_axis);
-    let dot = |a: L::V, b: DVec3| {
-        let a = l.store(a);
-        a[2].mul_add(b.z, a[1].mul_add(b.y, a[0] * b.x))
-    };
     let zero = l.splat(0.0);
     let (mut v, mut gx) = (zero, DVec3::ZERO);
     for i in 0..3 {
@@ -116,8 +112,8 @@ pub(crate) fn g2p_adjoint_particle<L: Lanes>(
                 let (w, wp) = (l.splat(wxy * wz[k]), l.splat(wxy * wzpz[k]));
                 *o = NodeVel::from_lanes(l.store(l.fma(gz, wp, l.fma(y, w, l.load(o.lanes())))));
             }
-            let sw = dot(sp, gcd.z_axis) + dot(s, y_xy);
-            let sdw = dot(dsp, gcd.z_axis) + dot(ds, y_xy);
+            let sw = l.hsum(l.fma(sp, gz, l.mul(s, y)));
+            let sdw = l.hsum(l.fma(dsp, gz, l.mul(ds, y)));
             v = l.fma(s, l.splat(wxy), v);
             gx += DVec3::new(dwx * wy * sw, wx * dwy * sw, wxy * sdw);
         }

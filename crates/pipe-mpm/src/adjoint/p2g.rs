@@ -72,15 +72,7 @@ pub(crate) fn p2g_adjoint_particle<L: Lanes>(l: L, inp: &P2gAdjoint<'_>) -> P2gG
     let mom = v * mass + extra;
     let p = st.offsets(grid.dx);
     let zw = ZWeights::new(l, &st, &p);
-    // `a·(b, mass)` over four lanes, and over the first three.
-    let dot4 = |a: L::V, b: DVec3| {
-        let a = l.store(a);
-        a[3].mul_add(mass, a[2].mul_add(b.z, a[1].mul_add(b.y, a[0] * b.x)))
-    };
-    let dot3 = |a: L::V, b: DVec3| {
-        let a = l.store(a);
-        a[2].mul_add(b.z, a[1].mul_add(b.y, a[0] * b.x))
-    };
+    let az = l.load([a.z_axis.x, a.z_axis.y, a.z_axis.z, 0.0]);
     let zero = l.splat(0.0);
     let (mut ga0, mut ga2, mut sum_wg) = (zero, zero, zero);
     let mut by_j = [zero; 3];
@@ -94,8 +86,10 @@ pub(crate) fn p2g_adjoint_particle<L: Lanes>(l: L, inp: &P2gAdjoint<'_>) -> P2gG
             let mom_xy = fma3(a.y_axis, py, mom_x);
             let row = grid.row(g_nodes, st.local, i, j);
             let [s, sp, ds, dsp] = zw.row_sums(l, [0, 1, 2].map(|k| l.load(row[k].lanes())));
-            let sw = dot3(sp, a.z_axis) + dot4(s, mom_xy);
-            let sdw = dot3(dsp, a.z_axis) + dot4(ds, mom_xy);
+            // Σ_k wz_k t_k = s·(mom_ij, m) + sp·(A₂, 0), likewise with wz'.
+            let m4 = l.load([mom_xy.x, mom_xy.y, mom_xy.z, mass]);
+            let sw = l.hsum(l.fma(sp, az, l.mul(s, m4)));
+            let sdw = l.hsum(l.fma(dsp, az, l.mul(ds, m4)));
             let wxy = wx * wy;
             s_i = l.fma(s, l.splat(wy), s_i);
             *b = l.fma(s, l.splat(wxy), *b);
