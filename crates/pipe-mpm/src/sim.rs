@@ -89,16 +89,25 @@ pub(crate) struct Work {
 /// Particles per parallel task of the stress pass.
 const STRESS_CHUNK: usize = 1024;
 
-/// Steps 1–4 for a chunk of particles: `F ← update((I + dt C) F_old)` and `τ`, with
-/// `F_old = f` itself when `f_old` is `None`; returns whether some new `F` is NaN/Inf.
+/// Where a stress chunk reads `F_old` and whether it writes the new `F`.
+enum FIo<'a> {
+    /// Read and overwrite `F` in place.
+    InPlace(&'a mut [DMat3]),
+    /// Read the first, write the second.
+    From(&'a [DMat3], &'a mut [DMat3]),
+    /// Read only (the stress alone is wanted).
+    Read(&'a [DMat3]),
+}
+
+/// Steps 1–4 for a chunk of particles: `F ← update((I + dt C) F_old)` and `τ`; returns whether
+/// some new `F` is NaN/Inf.
 struct StressChunk<'a, M> {
     model: &'a M,
     dt: f64,
     c: &'a [DMat3],
-    f_old: Option<&'a [DMat3]>,
     mu: &'a [f64],
     lam: &'a [f64],
-    f: &'a mut [DMat3],
+    f: FIo<'a>,
     tau: &'a mut [DMat3],
 }
 
@@ -107,16 +116,31 @@ impl<M: Constitutive> WithLanes for StressChunk<'_, M> {
 
     #[inline(always)]
     fn with<L: Lanes>(self, _l: L) -> bool {
+        let StressChunk {
+            model,
+            dt,
+            c,
+            mu,
+            lam,
+            mut f,
+            tau,
+        } = self;
         let mut bad = false;
-        for (p, (f, tau)) in self.f.iter_mut().zip(self.tau.iter_mut()).enumerate() {
-            let f0 = self.f_old.map_or(*f, |fo| fo[p]);
-            let ft = self.model.predict(&self.c[p], &f0, self.dt);
-            let (f_new, t_new) =
-                self.model
-                    .update(&ft, &self.c[p], self.mu[p], self.lam[p], self.dt);
-            *f = f_new;
+        for (p, tau) in tau.iter_mut().enumerate() {
+            let f0 = match &f {
+                FIo::InPlace(io) => io[p],
+                FIo::From(old, _) | FIo::Read(old) => old[p],
+            };
+            let ft = model.predict(&c[p], &f0, dt);
+            let (f_new, t_new) = model.update(&ft, &c[p], mu[p], lam[p], dt);
             *tau = t_new;
-            bad |= !f_new.is_finite();
+            match &mut f {
+                FIo::InPlace(out) | FIo::From(_, out) => {
+                    out[p] = f_new;
+                    bad |= !f_new.is_finite();
+                }
+                FIo::Read(_) => {}
+            }
         }
         bad
     }
@@ -256,14 +280,17 @@ impl<M: Constitutive> Simulator<M> {
                     .zip(w.tau.par_chunks_mut(STRESS_CHUNK))
                     .enumerate()
                     .map(|(k, (f, tau))| {
-                        let first = k * STRESS_CHUNK;
+                        let r = k * STRESS_CHUNK..k * STRESS_CHUNK + f.len();
+                        let f = match f_old {
+                            Some(fo) => FIo::From(&fo[r.clone()], f),
+                            None => FIo::InPlace(f),
+                        };
                         isa.run_lanes(StressChunk {
                             model,
                             dt,
-                            c: &c_old[first..first + f.len()],
-                            f_old: f_old.map(|fo| &fo[first..first + f.len()]),
-                            mu: &mat.mu[first..first + f.len()],
-                            lam: &mat.lam[first..first + f.len()],
+                            c: &c_old[r.clone()],
+                            mu: &mat.mu[r.clone()],
+                            lam: &mat.lam[r],
                             f,
                             tau,
                         })
@@ -288,13 +315,23 @@ impl<M: Constitutive> Simulator<M> {
 
     /// Kirchhoff stress τ of every particle into `w.tau` (steps 1–4 without writing `F`).
     pub(crate) fn stress(&self, s: &State, mat: &Material, w: &mut Work) {
-        let dt = self.config.dt;
-        let model = &self.model;
+        let (dt, model, isa) = (self.config.dt, &self.model, Isa::detect());
         w.tau.resize(s.len(), DMat3::ZERO);
-        w.tau.par_iter_mut().enumerate().for_each(|(p, tau)| {
-            let ft = model.predict(&s.c[p], &s.f[p], dt);
-            *tau = model.update(&ft, &s.c[p], mat.mu[p], mat.lam[p], dt).1;
-        });
+        w.tau
+            .par_chunks_mut(STRESS_CHUNK)
+            .enumerate()
+            .for_each(|(k, tau)| {
+                let r = k * STRESS_CHUNK..k * STRESS_CHUNK + tau.len();
+                isa.run_lanes(StressChunk {
+                    model,
+                    dt,
+                    c: &s.c[r.clone()],
+                    mu: &mat.mu[r.clone()],
+                    lam: &mat.lam[r.clone()],
+                    f: FIo::Read(&s.f[r]),
+                    tau,
+                });
+            });
     }
 
     /// Steps 5–6 given `w.tau`: binning, P2G and the grid update into `w.vgrid`.
