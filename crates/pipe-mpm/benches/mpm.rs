@@ -11,7 +11,8 @@
 //!
 //! Extra modes (run before divan, printing one JSON line each, then exit if set):
 //! * `MPM_AD=1`: forward (checkpointed tape) and backward timed separately, 16 substeps,
-//!   N = 20k, G = 32, nh and fcr, threads from `MPM_AD_THREADS` (default 1), median of 3.
+//!   N = 20k, G = 32, nh and fcr, threads from `MPM_AD_THREADS` (default 1), median of
+//!   `MPM_AD_REPS` (default 3) after one warm-up.
 //! * `MPM_ROLLOUT=run|tape|tape+bwd`: one differentiable rollout of `MPM_FRAMES` (14) frames of
 //!   `MPM_SUBSTEPS_PER_FRAME` (50) substeps, N = 20k, G = 32, nh, checkpoint per frame; for
 //!   peak-memory measurements with `/usr/bin/time -v` (`run` = plain forward, no tape);
@@ -66,7 +67,7 @@ fn ad_case<M: Constitutive + Clone>(
     let (sim, s0, mat) = scene(model, n, 32);
     let (mut plain, mut tf, mut tb) = (vec![], vec![], vec![]);
     let mut check = 0.0;
-    for rep in 0..4 {
+    for rep in 0..=env_usize("MPM_AD_REPS", 3) {
         pool.install(|| {
             let mut s = s0.clone();
             let t = std::time::Instant::now();

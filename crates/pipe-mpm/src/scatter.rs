@@ -131,6 +131,22 @@ where
     O: Send,
     F: Fn(usize, &mut O, &mut [T], usize) + Sync,
 {
+    scatter_with_slabs(grid, bins, out, per, |ps, os, c, first| {
+        for (&p, o) in ps.iter().zip(os) {
+            f(p as usize, o, c, first);
+        }
+    });
+}
+
+/// [`scatter_with`] one slab at a time: `f(particles, entries, chunk, first_layer)` gets a
+/// slab's particles (in the order they must be processed), their entries of `per` and the grid
+/// chunk they write.
+pub fn scatter_with_slabs<T, O, F>(grid: &GridSpec, bins: &Bins, out: &mut [T], per: &mut [O], f: F)
+where
+    T: Send,
+    O: Send,
+    F: Fn(&[u32], &mut [O], &mut [T], usize) + Sync,
+{
     let layer = grid.layer();
     debug_assert_eq!(out.len(), grid.len());
     debug_assert_eq!(per.len(), bins.order.len());
@@ -149,22 +165,17 @@ where
             odd.push(part);
         }
     }
-    let run = |k: usize, c: &mut [T], (ps, os): (&[u32], &mut [O])| {
-        for (&p, o) in ps.iter().zip(os) {
-            f(p as usize, o, c, k);
-        }
-    };
     debug_assert!(even.len() <= out.len().div_ceil(chunk));
     out.par_chunks_mut(chunk)
         .zip(even)
         .enumerate()
-        .for_each(|(k, (c, part))| run(6 * k, c, part));
+        .for_each(|(k, (c, (ps, os)))| f(ps, os, c, 6 * k));
     if out.len() > 3 * layer {
         debug_assert!(odd.len() <= (out.len() - 3 * layer).div_ceil(chunk));
         out[3 * layer..]
             .par_chunks_mut(chunk)
             .zip(odd)
             .enumerate()
-            .for_each(|(k, (c, part))| run(6 * k + 3, c, part));
+            .for_each(|(k, (c, (ps, os)))| f(ps, os, c, 6 * k + 3));
     }
 }

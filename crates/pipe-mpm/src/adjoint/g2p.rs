@@ -12,32 +12,39 @@ use crate::grid_update::NodeVel;
 use crate::isa::{Lanes, WithLanes};
 use crate::p2g::fma3;
 
-/// One particle's G2P adjoint, including the position update `x' = hold(x + dt v')`, as a
-/// unit of work for [`crate::isa::Isa::run`]; returns `(x̄, v̄)` of the particle.
+/// The G2P adjoint of one slab's particles, including the position update
+/// `x' = hold(x + dt v')`, as a unit of work for [`crate::isa::Isa::run_lanes`]: writes
+/// `(x̄, v̄)` of particle `ps[i]` to `out[i]` and scatters the node gradients into `chunk`.
 pub(crate) struct G2pAdjoint<'a> {
     pub grid: &'a GridSpec,
     pub vgrid: &'a [NodeVel],
-    /// Node gradients `v̄_i` of the particle's slab chunk, starting at x-layer `first`.
+    /// The slab's particles, in processing order.
+    pub ps: &'a [u32],
+    /// `(x̄, v̄)` per particle of `ps`.
+    pub out: &'a mut [(DVec3, DVec3)],
+    /// Node gradients `v̄_i` of the slab's chunk, starting at x-layer `first`.
     pub chunk: &'a mut [NodeVel],
     pub first: usize,
     pub dt: f64,
     /// Particles closer than this (m) to a domain wall may have been held there.
     pub reach: f64,
-    pub x: DVec3,
-    /// `∂L/∂x'`, `∂L/∂v'`, `∂L/∂C'`.
-    pub gx: DVec3,
-    pub gv: DVec3,
-    pub gc: &'a DMat3,
+    /// Positions and `∂L/∂x'`, `∂L/∂v'`, `∂L/∂C'` of all particles.
+    pub x: &'a [DVec3],
+    pub gx: &'a [DVec3],
+    pub gv: &'a [DVec3],
+    pub gc: &'a [DMat3],
 }
 
 impl WithLanes for G2pAdjoint<'_> {
-    type Output = (DVec3, DVec3);
+    type Output = ();
 
     #[inline(always)]
-    fn with<L: Lanes>(self, l: L) -> (DVec3, DVec3) {
+    fn with<L: Lanes>(self, l: L) {
         let G2pAdjoint {
             grid,
             vgrid,
+            ps,
+            out,
             chunk,
             first,
             dt,
@@ -47,20 +54,24 @@ impl WithLanes for G2pAdjoint<'_> {
             gv,
             gc,
         } = self;
-        // |v'| ≤ max |v_i| (convex weights): far enough from the walls x' was not held (x̄'
-        // passes); else redo G2P's exact sum to decide.
-        let margin = (x - grid.domain.lo).min(grid.domain.hi - x).min_element();
-        let mask = if margin > reach {
-            DVec3::ONE
-        } else {
-            let unclamped = x + dt * gather(l, grid, vgrid, x).0;
-            let held = unclamped.clamp(grid.domain.lo, grid.domain.hi);
-            DVec3::select(unclamped.cmpeq(held), DVec3::ONE, DVec3::ZERO)
-        };
-        let gxn = gx * mask;
-        let gv = gv + dt * gxn;
-        let gx_w = g2p_adjoint_particle(l, grid, vgrid, chunk, first, x, gv, gc);
-        (gxn + gx_w, gv)
+        for (&p, o) in ps.iter().zip(out) {
+            let p = p as usize;
+            let x = x[p];
+            // |v'| ≤ max |v_i| (convex weights): far enough from the walls x' was not held
+            // (x̄' passes); else redo G2P's exact sum to decide.
+            let margin = (x - grid.domain.lo).min(grid.domain.hi - x).min_element();
+            let mask = if margin > reach {
+                DVec3::ONE
+            } else {
+                let unclamped = x + dt * gather(l, grid, vgrid, x).0;
+                let held = unclamped.clamp(grid.domain.lo, grid.domain.hi);
+                DVec3::select(unclamped.cmpeq(held), DVec3::ONE, DVec3::ZERO)
+            };
+            let gxn = gx[p] * mask;
+            let gv = gv[p] + dt * gxn;
+            let gx_w = g2p_adjoint_particle(l, grid, vgrid, chunk, first, x, gv, &gc[p]);
+            *o = (gxn + gx_w, gv);
+        }
     }
 }
 

@@ -17,9 +17,9 @@ use crate::error::MpmError;
 use crate::grid::{NodeBox, Stencil};
 use crate::grid_update::NodeVel;
 use crate::isa::{Isa, Lanes, WithLanes};
-use crate::models::{Constitutive, ModelGrad};
+use crate::models::Constitutive;
 use crate::p2g::Node;
-use crate::scatter::scatter_with;
+use crate::scatter::scatter_with_slabs;
 use crate::sim::{Simulator, Work};
 use crate::state::{FamilyGrad, Material, MaterialGrad, State, StateGrad};
 
@@ -59,32 +59,90 @@ impl<L: Lanes> ZWeights<L> {
     }
 }
 
-/// One particle's P2G, constitutive and strain-prediction adjoints, as a unit of work for
-/// [`Isa::run_lanes`]; returns the P2G gradients, the model's, and `(∂L/∂C, ∂L/∂F)` of the
-/// prediction.
+/// Particles per parallel task of the per-particle adjoint pass.
+const PARTICLE_CHUNK: usize = 512;
+
+/// Mutable per-particle gradients of one chunk: state `(x̄, v̄, C̄, F̄)`, material
+/// `(m̄, V̄, μ̄, λ̄)` and family.
+type GradChunk<'a> = (
+    &'a mut [DVec3],
+    &'a mut [DVec3],
+    &'a mut [DMat3],
+    &'a mut [DMat3],
+    &'a mut [f64],
+    &'a mut [f64],
+    &'a mut [f64],
+    &'a mut [f64],
+    &'a mut [FamilyGrad],
+);
+
+/// The P2G, constitutive and strain-prediction adjoints of a chunk of particles (starting at
+/// particle `first`), as one unit of work for [`Isa::run_lanes`]; returns whether some new
+/// state gradient is NaN/Inf.
 struct ParticleAdjoint<'a, M> {
     model: &'a M,
-    p2g: p2g::P2gAdjoint<'a>,
-    f: &'a DMat3,
-    mu: f64,
-    lam: f64,
-    /// `∂L/∂F_new`.
-    g_f: &'a DMat3,
+    grid: &'a crate::grid::GridSpec,
+    g_nodes: &'a [Node],
+    dt: f64,
+    s: &'a State,
+    mat: &'a Material,
+    w: &'a Work,
+    first: usize,
+    g: GradChunk<'a>,
 }
 
 impl<M: Constitutive> WithLanes for ParticleAdjoint<'_, M> {
-    type Output = (p2g::P2gGrad, ModelGrad, DMat3, DMat3);
+    type Output = bool;
 
     #[inline(always)]
-    fn with<L: Lanes>(self, l: L) -> Self::Output {
-        let pg = p2g::p2g_adjoint_particle(l, &self.p2g);
-        let (c, dt) = (self.p2g.c, self.p2g.dt);
-        let f_tmp = self.model.predict(c, self.f, dt);
-        let mg = self
-            .model
-            .update_adjoint(&f_tmp, c, self.mu, self.lam, dt, self.g_f, &pg.tau);
-        let (gc_pred, gf_new) = self.model.predict_adjoint(c, self.f, dt, &mg.f_tmp);
-        (pg, mg, gc_pred, gf_new)
+    fn with<L: Lanes>(self, l: L) -> bool {
+        let ParticleAdjoint {
+            model,
+            grid,
+            g_nodes,
+            dt,
+            s,
+            mat,
+            w,
+            first,
+            g: (gx, gv, gc, gf, gmass, gvol, gmu, glam, gfam),
+        } = self;
+        let mut bad = false;
+        for (i, gx) in gx.iter_mut().enumerate() {
+            let p = first + i;
+            let extra = w.extra.as_ref().map_or(DVec3::ZERO, |e| e[p]);
+            let c = &s.c[p];
+            let pg = p2g::p2g_adjoint_particle(
+                l,
+                &p2g::P2gAdjoint {
+                    grid,
+                    g_nodes,
+                    dt,
+                    x: s.x[p],
+                    v: s.v[p],
+                    c,
+                    tau: &w.tau[p],
+                    mass: mat.mass[p],
+                    volume: mat.volume[p],
+                    extra,
+                },
+            );
+            let f_tmp = model.predict(c, &s.f[p], dt);
+            let mg = model.update_adjoint(&f_tmp, c, mat.mu[p], mat.lam[p], dt, &gf[i], &pg.tau);
+            let (gc_pred, gf_new) = model.predict_adjoint(c, &s.f[p], dt, &mg.f_tmp);
+            *gx += pg.x;
+            gv[i] = pg.v;
+            gc[i] = pg.c + mg.c + gc_pred;
+            gf[i] = gf_new;
+            gmass[i] += pg.mass;
+            gvol[i] += pg.volume;
+            gmu[i] += mg.mu;
+            glam[i] += mg.lam;
+            gfam[i] = mg.family;
+            bad |=
+                !(gx.is_finite() && gv[i].is_finite() && gc[i].is_finite() && gf_new.is_finite());
+        }
+        bad
     }
 }
 
@@ -193,24 +251,26 @@ impl<M: Constitutive> Simulator<M> {
         aw.g2p.resize(s.len(), (DVec3::ZERO, DVec3::ZERO));
         {
             let (gx_in, gv_in, gc_in) = (&g.x, &g.v, &g.c);
-            scatter_with(
+            scatter_with_slabs(
                 grid,
                 &w.bins,
                 &mut aw.g_vgrid,
                 &mut aw.g2p,
-                |p, o, chunk, first| {
-                    *o = isa.run_lanes(g2p::G2pAdjoint {
+                |ps, out, chunk, first| {
+                    isa.run_lanes(g2p::G2pAdjoint {
                         grid,
                         vgrid: &w.vgrid,
+                        ps,
+                        out,
                         chunk,
                         first,
                         dt,
                         reach,
-                        x: s.x[p],
-                        gx: gx_in[p],
-                        gv: gv_in[p],
-                        gc: &gc_in[p],
-                    });
+                        x: &s.x,
+                        gx: gx_in,
+                        gv: gv_in,
+                        gc: gc_in,
+                    })
                 },
             );
         }
@@ -233,49 +293,30 @@ impl<M: Constitutive> Simulator<M> {
         let g_nodes = &aw.g_nodes;
         aw.family.resize(s.len(), FamilyGrad::default());
         let non_finite = (
-            g.x.par_iter_mut(),
-            g.v.par_iter_mut(),
-            g.c.par_iter_mut(),
-            g.f.par_iter_mut(),
-            gmat.mass.par_iter_mut(),
-            gmat.volume.par_iter_mut(),
-            gmat.mu.par_iter_mut(),
-            gmat.lam.par_iter_mut(),
-            aw.family.par_iter_mut(),
+            g.x.par_chunks_mut(PARTICLE_CHUNK),
+            g.v.par_chunks_mut(PARTICLE_CHUNK),
+            g.c.par_chunks_mut(PARTICLE_CHUNK),
+            g.f.par_chunks_mut(PARTICLE_CHUNK),
+            gmat.mass.par_chunks_mut(PARTICLE_CHUNK),
+            gmat.volume.par_chunks_mut(PARTICLE_CHUNK),
+            gmat.mu.par_chunks_mut(PARTICLE_CHUNK),
+            gmat.lam.par_chunks_mut(PARTICLE_CHUNK),
+            aw.family.par_chunks_mut(PARTICLE_CHUNK),
         )
             .into_par_iter()
             .enumerate()
-            .map(|(p, (gx, gv, gc, gf, gmass, gvol, gmu, glam, gfam))| {
-                let extra = w.extra.as_ref().map_or(DVec3::ZERO, |e| e[p]);
-                let (pg, mg, gc_pred, gf_new) = isa.run_lanes(ParticleAdjoint {
+            .map(|(k, g)| {
+                isa.run_lanes(ParticleAdjoint {
                     model,
-                    p2g: p2g::P2gAdjoint {
-                        grid,
-                        g_nodes,
-                        dt,
-                        x: s.x[p],
-                        v: s.v[p],
-                        c: &s.c[p],
-                        tau: &w.tau[p],
-                        mass: mat.mass[p],
-                        volume: mat.volume[p],
-                        extra,
-                    },
-                    f: &s.f[p],
-                    mu: mat.mu[p],
-                    lam: mat.lam[p],
-                    g_f: gf,
-                });
-                *gx += pg.x;
-                *gv = pg.v;
-                *gc = pg.c + mg.c + gc_pred;
-                *gf = gf_new;
-                *gmass += pg.mass;
-                *gvol += pg.volume;
-                *gmu += mg.mu;
-                *glam += mg.lam;
-                *gfam = mg.family;
-                !(gx.is_finite() && gv.is_finite() && gc.is_finite() && gf.is_finite())
+                    grid,
+                    g_nodes,
+                    dt,
+                    s,
+                    mat,
+                    w,
+                    first: k * PARTICLE_CHUNK,
+                    g,
+                })
             })
             .reduce(|| false, |a, b| a | b);
         // Family gradients are summed in particle order (bit-identical for any thread count).

@@ -39,17 +39,19 @@ impl Constitutive for FixedCorotated {
         let j = f.determinant();
         let tr_g = trace(g_tau);
         let gt = g_tau.transpose();
-        // τ = 2μ(F Fᵀ − R Fᵀ) + λ(J² − J) I.
-        let mut g = *g_f + ((*g_tau + gt) * *f - gt * r) * (2.0 * mu);
+        // τ = 2μ(F Fᵀ − R Fᵀ) + λ(J² − J) I; τ̄ F is shared by ∂/∂F, R̄ and ∂/∂μ
+        // (τ̄ : (F − R)Fᵀ = τ̄ F : (F − R)).
+        let gf = *g_tau * *f;
+        let mut g = *g_f + (gf + gt * (*f - r)) * (2.0 * mu);
         g += cofactor(f) * (lam * (2.0 * j - 1.0) * tr_g);
-        let g_r = *g_tau * *f * (-2.0 * mu);
+        let g_r = gf * (-2.0 * mu);
         // The rotation's adjoint from R alone where F is well inside det F > 0, else via the SVD.
         g +=
             polar_rotation_adjoint(f, &r, &g_r).unwrap_or_else(|| rotation_adjoint(&svd3(f), &g_r));
         ModelGrad {
             f_tmp: g,
             c: DMat3::ZERO,
-            mu: 2.0 * ddot(g_tau, &((*f - r) * f.transpose())),
+            mu: 2.0 * ddot(&gf, &(*f - r)),
             lam: tr_g * j * (j - 1.0),
             family: FamilyGrad::default(),
         }
