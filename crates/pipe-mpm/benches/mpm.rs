@@ -162,7 +162,7 @@ fn rollout(mode: &str) {
         m => panic!("MPM_ROLLOUT={m}: expected run, tape or tape+bwd"),
     }
     println!(
-        "{{\"mode\":\"{mode}\",\"N\":{n},\"frames\":{frames},\"substeps_per_frame\":{spf},\"state_bytes\":{state_bytes},\"vmhwm_before_kib\":{hwm0},\"vmhwm_after_kib\":{},\"wall_s\":{:.2}}}",
+        "{{\"mode\":\"{mode}\",\"N\":{n},\"frames\":{frames},\"substeps_per_frame\":{spf},\"state_bytes\":{state_bytes},\"vmhwm_before_kib\":{hwm0},\"vmhwm_after_kib\":{},\"wall_s\":{:.4}}}",
         rss_kib(),
         t.elapsed().as_secs_f64()
     );

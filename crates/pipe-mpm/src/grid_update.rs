@@ -36,10 +36,16 @@ impl NodeVel {
         [self.v.x, self.v.y, self.v.z, self.pad]
     }
 
-    /// A node velocity from four lanes (the fourth is dropped).
+    /// A node velocity from four lanes whose fourth is 0 (kept as the padding, so the node is
+    /// written as one 32-byte store: split stores made the next 32-byte load of the same node
+    /// miss store-to-load forwarding).
     #[inline(always)]
     pub(crate) fn from_lanes(a: [f64; 4]) -> Self {
-        Self::new(DVec3::new(a[0], a[1], a[2]))
+        debug_assert!(a[3] == 0.0, "padding lane {} is not 0", a[3]);
+        Self {
+            v: DVec3::new(a[0], a[1], a[2]),
+            pad: a[3],
+        }
     }
 }
 

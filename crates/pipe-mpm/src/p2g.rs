@@ -131,8 +131,9 @@ impl WithLanes for Slab<'_> {
 }
 
 /// Adds one particle's `w (mom + A dpos, m)` to its 27 nodes. Along the separable stencil,
-/// `q = mom + A₀ px + A₁ py` per row and node `k` of the row gets
-/// `w_k (q, m) + (w_k pz_k) (A₂, 0)`: two fused multiply-adds on the node's four lanes.
+/// `q = (mom + A₀ px + A₁ py, m)` per row, and node `k` of the row gets
+/// `wx wy (wz_k q + wz_k pz_k (A₂, 0))`, the second term being fixed per particle: two fused
+/// multiply-adds on the node's four lanes.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn scatter_particle<L: Lanes>(
@@ -147,20 +148,24 @@ fn scatter_particle<L: Lanes>(
 ) {
     let st = grid.stencil_with(l, x);
     let d = st.offsets(grid.dx);
-    let wz = [st.w[0].z, st.w[1].z, st.w[2].z];
-    let wzpz = [wz[0] * d[0].z, wz[1] * d[1].z, wz[2] * d[2].z];
-    let az = l.load([a.z_axis.x, a.z_axis.y, a.z_axis.z, 0.0]);
+    let lanes = |v: DVec3, w: f64| l.load([v.x, v.y, v.z, w]);
+    let (a0, a1, a2) = (
+        lanes(a.x_axis, 0.0),
+        lanes(a.y_axis, 0.0),
+        lanes(a.z_axis, 0.0),
+    );
+    let wz: [L::V; 3] = std::array::from_fn(|k| l.splat(st.w[k].z));
+    let a2k: [L::V; 3] = std::array::from_fn(|k| l.mul(a2, l.splat(st.w[k].z * d[k].z)));
+    let mom4 = lanes(mom, m);
     for i in 0..3 {
-        let q_x = fma3(a.x_axis, d[i].x, mom);
+        let q_x = l.fma(a0, l.splat(d[i].x), mom4);
         for (j, (dj, wj)) in d.iter().zip(st.w).enumerate() {
-            let q = fma3(a.y_axis, dj.y, q_x);
-            let q = l.load([q.x, q.y, q.z, m]);
-            let wxy = st.w[i].x * wj.y;
+            let q = l.fma(a1, l.splat(dj.y), q_x);
+            let wxy = l.splat(st.w[i].x * wj.y);
             let row = grid.row_mut(chunk, first, st.local, i, j);
             for (k, n) in row.iter_mut().enumerate() {
-                let (w, wp) = (l.splat(wxy * wz[k]), l.splat(wxy * wzpz[k]));
-                let lanes = l.fma(az, wp, l.fma(q, w, l.load(n.lanes())));
-                *n = Node::from_lanes(l.store(lanes));
+                let qk = l.fma(q, wz[k], a2k[k]);
+                *n = Node::from_lanes(l.store(l.fma(qk, wxy, l.load(n.lanes()))));
             }
         }
     }

@@ -100,12 +100,11 @@ pub(crate) fn g2p_adjoint_particle<L: Lanes>(
     let p = st.offsets(grid.dx);
     let gcd = *gc * d_inv;
     let zw = ZWeights::new(l, &st, &p);
-    let (wz, wzpz) = (
-        [0, 1, 2].map(|k| st.w[k].z),
-        [0, 1, 2].map(|k| st.w[k].z * p[k].z),
-    );
     let lanes3 = |v: DVec3| l.load([v.x, v.y, v.z, 0.0]);
     let gz = lanes3(gcd.z_axis);
+    // Node k of a row gets w_xy (wz_k y + wz_k pz_k ȳ_z); the second term is fixed per particle.
+    let wz: [L::V; 3] = std::array::from_fn(|k| l.splat(st.w[k].z));
+    let gzk: [L::V; 3] = std::array::from_fn(|k| l.mul(gz, l.splat(st.w[k].z * p[k].z)));
     let zero = l.splat(0.0);
     let (mut v, mut gx) = (zero, DVec3::ZERO);
     for i in 0..3 {
@@ -119,9 +118,10 @@ pub(crate) fn g2p_adjoint_particle<L: Lanes>(
             let [s, sp, ds, dsp] = zw.row_sums(l, [0, 1, 2].map(|k| l.load(row[k].lanes())));
             let y = lanes3(y_xy);
             let out = grid.row_mut(chunk, first, st.local, i, j);
+            let wxy_v = l.splat(wxy);
             for (k, o) in out.iter_mut().enumerate() {
-                let (w, wp) = (l.splat(wxy * wz[k]), l.splat(wxy * wzpz[k]));
-                *o = NodeVel::from_lanes(l.store(l.fma(gz, wp, l.fma(y, w, l.load(o.lanes())))));
+                let yk = l.fma(y, wz[k], gzk[k]);
+                *o = NodeVel::from_lanes(l.store(l.fma(yk, wxy_v, l.load(o.lanes()))));
             }
             let sw = l.hsum(l.fma(sp, gz, l.mul(s, y)));
             let sdw = l.hsum(l.fma(dsp, gz, l.mul(ds, y)));
