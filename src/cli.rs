@@ -183,7 +183,9 @@ pub fn run(args: impl IntoIterator<Item = impl Into<OsString> + Clone>, registry
     }
     let workdir = cli.workdir.clone().unwrap_or_else(|| PathBuf::from("."));
     let ws = Workspace::new(&workdir);
-    match execute(&cli, &ws, &registry) {
+    // Run on a worker of the pool: parallel kernels started from a thread outside the pool
+    // hand over and sleep until done, a futex round trip per kernel call.
+    match rayon::scope(|_| execute(&cli, &ws, &registry)) {
         Ok(()) => 0,
         Err(e) => {
             eprintln!("error: {e}");

@@ -152,6 +152,17 @@ impl<M: Constitutive> Simulator<M> {
         &self,
         tape: &Tape,
         mat: &Material,
+        seed: impl FnMut(usize, SeedState<'_>) -> Option<StateGrad> + Send,
+        opts: BackwardOptions,
+    ) -> Result<Gradients, MpmError> {
+        crate::sim::on_worker(|| self.backward_on_worker(tape, mat, seed, opts))
+    }
+
+    /// [`Self::backward`] on the calling thread.
+    fn backward_on_worker(
+        &self,
+        tape: &Tape,
+        mat: &Material,
         mut seed: impl FnMut(usize, SeedState<'_>) -> Option<StateGrad>,
         opts: BackwardOptions,
     ) -> Result<Gradients, MpmError> {
