@@ -12,7 +12,7 @@
 //! Extra modes (run before divan, printing one JSON line each, then exit if set):
 //! * `MPM_AD=1`: forward (checkpointed tape) and backward timed separately, 16 substeps,
 //!   N = 20k, G = 32, nh and fcr, threads from `MPM_AD_THREADS` (default 1), median of
-//!   `MPM_AD_REPS` (default 3) after one warm-up.
+//!   `MPM_AD_REPS` (default 3) after one warm-up; `MPM_AD_N` changes N.
 //! * `MPM_ROLLOUT=run|tape|tape+bwd`: one differentiable rollout of `MPM_FRAMES` (14) frames of
 //!   `MPM_SUBSTEPS_PER_FRAME` (50) substeps, N = 20k, G = 32, nh, checkpoint per frame; for
 //!   peak-memory measurements with `/usr/bin/time -v` (`run` = plain forward, no tape);
@@ -63,7 +63,7 @@ fn ad_case<M: Constitutive + Clone>(
         .num_threads(threads)
         .build()
         .unwrap();
-    let n = 20_000;
+    let n = env_usize("MPM_AD_N", 20_000);
     let (sim, s0, mat) = scene(model, n, 32);
     let (mut plain, mut tf, mut tb) = (vec![], vec![], vec![]);
     let mut check = 0.0;

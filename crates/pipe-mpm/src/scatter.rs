@@ -10,6 +10,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::grid::{GridSpec, NodeBox};
+use crate::isa::Scalar;
 
 /// Particles grouped by x-slab.
 #[derive(Debug, Clone, Default)]
@@ -41,7 +42,7 @@ impl Bins {
         slab.clear();
         let (mut lo, mut hi) = ([usize::MAX; 2], [0; 2]);
         slab.extend(x.iter().map(|&p| {
-            let l = grid.stencil(p).local;
+            let l = grid.stencil_base(Scalar, p);
             for a in 0..2 {
                 lo[a] = lo[a].min(l[a]);
                 hi[a] = hi[a].max(l[a]);
