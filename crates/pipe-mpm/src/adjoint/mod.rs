@@ -138,7 +138,16 @@ impl<M: Constitutive> WithLanes for ParticleAdjoint<'_, M> {
             gvol[i] += pg.volume;
             gmu[i] += mg.mu;
             glam[i] += mg.lam;
-            gfam[i] = mg.family;
+            if M::HAS_FAMILY_PARAMS {
+                gfam[i] = mg.family;
+            } else {
+                debug_assert_eq!(
+                    mg.family,
+                    FamilyGrad::default(),
+                    "{} has family gradients",
+                    M::NAME
+                );
+            }
             bad |=
                 !(gx.is_finite() && gv[i].is_finite() && gc[i].is_finite() && gf_new.is_finite());
         }
@@ -320,7 +329,9 @@ impl<M: Constitutive> Simulator<M> {
             })
             .reduce(|| false, |a, b| a | b);
         // Family gradients are summed in particle order (bit-identical for any thread count).
-        gmat.family = aw.family.iter().fold(gmat.family, |acc, &f| acc + f);
+        if M::HAS_FAMILY_PARAMS {
+            gmat.family = aw.family.iter().fold(gmat.family, |acc, &f| acc + f);
+        }
         non_finite
     }
 }

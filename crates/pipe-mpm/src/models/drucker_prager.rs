@@ -148,6 +148,7 @@ impl DruckerPrager {
 
 impl Constitutive for DruckerPrager {
     const NAME: &'static str = "drucker_prager";
+    const HAS_FAMILY_PARAMS: bool = true;
 
     fn update(&self, f_tmp: &DMat3, _c: &DMat3, mu: f64, lam: f64, _dt: f64) -> (DMat3, DMat3) {
         let d = svd3(f_tmp);

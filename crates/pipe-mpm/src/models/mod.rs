@@ -45,6 +45,10 @@ pub trait Constitutive: Send + Sync + std::fmt::Debug + Clone {
     /// Short name (`"neo_hookean"`, ...).
     const NAME: &'static str;
 
+    /// Whether [`ModelGrad::family`] can be non-zero (the model has family scalars such as a
+    /// yield stress); when false the backward pass neither stores nor sums it.
+    const HAS_FAMILY_PARAMS: bool = false;
+
     /// Predicted deformation `F_tmp = (I + dt C) F` (dt in s, C in 1/s).
     #[inline(always)]
     fn predict(&self, c: &DMat3, f: &DMat3, dt: f64) -> DMat3 {

@@ -137,6 +137,7 @@ impl VonMises {
 
 impl Constitutive for VonMises {
     const NAME: &'static str = "von_mises";
+    const HAS_FAMILY_PARAMS: bool = true;
 
     fn update(&self, f_tmp: &DMat3, _c: &DMat3, mu: f64, lam: f64, dt: f64) -> (DMat3, DMat3) {
         let d = svd3(f_tmp);
