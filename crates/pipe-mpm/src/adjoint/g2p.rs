@@ -14,14 +14,14 @@ use crate::p2g::fma3;
 
 /// The G2P adjoint of one slab's particles, including the position update
 /// `x' = hold(x + dt v')`, as a unit of work for [`crate::isa::Isa::run_lanes`]: writes
-/// `(x̄, v̄)` of particle `ps[i]` to `out[i]` and scatters the node gradients into `chunk`.
+/// `x̄` of particle `ps[i]` to `out[i]` and scatters the node gradients into `chunk`.
 pub(crate) struct G2pAdjoint<'a> {
     pub grid: &'a GridSpec,
     pub vgrid: &'a [NodeVel],
     /// The slab's particles, in processing order.
     pub ps: &'a [u32],
-    /// `(x̄, v̄)` per particle of `ps`.
-    pub out: &'a mut [(DVec3, DVec3)],
+    /// `x̄` per particle of `ps`.
+    pub out: &'a mut [DVec3],
     /// Node gradients `v̄_i` of the slab's chunk, starting at x-layer `first`.
     pub chunk: &'a mut [NodeVel],
     pub first: usize,
@@ -70,7 +70,7 @@ impl WithLanes for G2pAdjoint<'_> {
             let gxn = gx[p] * mask;
             let gv = gv[p] + dt * gxn;
             let gx_w = g2p_adjoint_particle(l, grid, vgrid, chunk, first, x, gv, &gc[p]);
-            *o = (gxn + gx_w, gv);
+            *o = gxn + gx_w;
         }
     }
 }

@@ -164,7 +164,7 @@ pub(crate) struct AdjointWork {
     g_active: NodeBox,
     g_nodes: Vec<Node>,
     /// `(x̄, v̄)` after the G2P adjoint, in bin order.
-    g2p: Vec<(DVec3, DVec3)>,
+    g2p: Vec<DVec3>,
     family: Vec<FamilyGrad>,
 }
 
@@ -246,7 +246,8 @@ impl<M: Constitutive> Simulator<M> {
         let reach = dt * v_max * (1.0 + 1e-9) + 1e-12 * (1.0 + scale);
         // G2P and the position update x' = hold(x + dt v'): x̄' passes where x' was not held,
         // v̄' = v̄ + dt x̄'; x̄ gets the weight and offset terms; the node gradients v̄_i are
-        // scattered in the same pass. Outputs go to `aw.g2p` in bin order, then to g.x, g.v.
+        // scattered in the same pass. x̄ goes to `aw.g2p` in bin order, then to g.x; v̄' only feeds
+        // the node gradients (v_k's gradient comes from P2G, below).
         // Only the nodes of the particles' box (`w.active`) receive gradients: zero those the
         // last substep wrote rather than the whole grid.
         if aw.g_vgrid.len() == grid.len() {
@@ -257,7 +258,7 @@ impl<M: Constitutive> Simulator<M> {
         }
         aw.g_active = w.active.clone();
         let isa = Isa::detect();
-        aw.g2p.resize(s.len(), (DVec3::ZERO, DVec3::ZERO));
+        aw.g2p.resize(s.len(), DVec3::ZERO);
         {
             let (gx_in, gv_in, gc_in) = (&g.x, &g.v, &g.c);
             scatter_with_slabs(
@@ -283,9 +284,8 @@ impl<M: Constitutive> Simulator<M> {
                 },
             );
         }
-        for (&p, &(gx, gv)) in w.bins.order.iter().zip(&aw.g2p) {
+        for (&p, &gx) in w.bins.order.iter().zip(&aw.g2p) {
             g.x[p as usize] = gx;
-            g.v[p as usize] = gv;
         }
         grid_update::grid_update_adjoint(
             grid,
