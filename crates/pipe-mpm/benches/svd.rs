@@ -9,7 +9,7 @@
 
 use divan::Bencher;
 use divan::counter::ItemsCount;
-use glam::{DMat3, DQuat, DVec3};
+use glam::{DMat3, DVec3};
 use pipe_mpm::svd::{Svd, polar_rotation, svd3, svd3_jacobi};
 
 fn main() {
@@ -18,23 +18,9 @@ fn main() {
 
 const N: usize = 10_000;
 
-/// SplitMix64 uniform numbers in [0, 1).
-struct Rng(u64);
-
-impl Rng {
-    fn unit(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    fn rotation(&mut self) -> DMat3 {
-        let q = [0; 4].map(|_| self.unit() - 0.5);
-        DMat3::from_quat(DQuat::from_xyzw(q[0], q[1], q[2], q[3]).normalize())
-    }
-}
+#[path = "../tests/common/rng.rs"]
+mod rng;
+use rng::Rng;
 
 /// Deterministic batch: `F = U diag(σ) Vᵀ`, σ uniform in `[1 − w, 1 + w]`.
 fn batch(w: f64) -> Vec<DMat3> {

@@ -66,6 +66,11 @@ impl Order {
         self.order.iter().map(|&p| src[p as usize]).collect()
     }
 
+    /// `sorted` (slot order) in the caller's order.
+    pub(crate) fn unsorted<T: Copy>(&self, sorted: &[T]) -> Vec<T> {
+        self.rank.iter().map(|&i| sorted[i as usize]).collect()
+    }
+
     /// Writes `sorted` (slot order) into `dst` (caller's order).
     pub(crate) fn scatter<T: Copy>(&self, sorted: &[T], dst: &mut [T]) {
         for (&p, &v) in self.order.iter().zip(sorted) {
@@ -93,9 +98,12 @@ impl Order {
 
     /// A slot-order state back in the caller's order.
     pub(crate) fn unsort_state(&self, sorted: &State) -> State {
-        let mut out = sorted.clone();
-        self.unsort_state_into(sorted, &mut out);
-        out
+        State {
+            x: self.unsorted(&sorted.x),
+            v: self.unsorted(&sorted.v),
+            c: self.unsorted(&sorted.c),
+            f: self.unsorted(&sorted.f),
+        }
     }
 
     /// A material in slot order.
@@ -120,22 +128,23 @@ impl Order {
 
     /// A slot-order gradient back in the caller's order.
     pub(crate) fn unsort_grad(&self, sorted: &StateGrad) -> StateGrad {
-        let mut out = sorted.clone();
-        self.scatter(&sorted.x, &mut out.x);
-        self.scatter(&sorted.v, &mut out.v);
-        self.scatter(&sorted.c, &mut out.c);
-        self.scatter(&sorted.f, &mut out.f);
-        out
+        StateGrad {
+            x: self.unsorted(&sorted.x),
+            v: self.unsorted(&sorted.v),
+            c: self.unsorted(&sorted.c),
+            f: self.unsorted(&sorted.f),
+        }
     }
 
     /// A slot-order material gradient back in the caller's order.
     pub(crate) fn unsort_material_grad(&self, sorted: &MaterialGrad) -> MaterialGrad {
-        let mut out = sorted.clone();
-        self.scatter(&sorted.mass, &mut out.mass);
-        self.scatter(&sorted.volume, &mut out.volume);
-        self.scatter(&sorted.mu, &mut out.mu);
-        self.scatter(&sorted.lam, &mut out.lam);
-        out
+        MaterialGrad {
+            mass: self.unsorted(&sorted.mass),
+            volume: self.unsorted(&sorted.volume),
+            mu: self.unsorted(&sorted.mu),
+            lam: self.unsorted(&sorted.lam),
+            family: sorted.family,
+        }
     }
 
     /// Forces with their particle sets renumbered to slots.

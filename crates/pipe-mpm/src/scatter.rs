@@ -89,22 +89,9 @@ impl Bins {
     }
 }
 
-/// Calls `f(particle, chunk, first_layer)` for every particle, where `chunk` is a mutable view of
-/// the grid array starting at x-layer `first_layer` that covers all 27 stencil nodes.
-pub fn scatter<T, F>(grid: &GridSpec, bins: &Bins, out: &mut [T], f: F)
-where
-    T: Send,
-    F: Fn(usize, &mut [T], usize) + Sync,
-{
-    scatter_slabs(grid, bins, out, |ps, c, first| {
-        for &p in ps {
-            f(p as usize, c, first);
-        }
-    });
-}
-
-/// [`scatter`] one slab at a time: `f(particles, chunk, first_layer)` gets a slab's particles
-/// (in the order they must be processed) and the grid chunk they write.
+/// Runs `f(particles, chunk, first_layer)` for every slab: the slab's particles (in the order
+/// they must be processed) and a mutable view of the grid array starting at x-layer
+/// `first_layer` that covers all their stencil nodes.
 pub fn scatter_slabs<T, F>(grid: &GridSpec, bins: &Bins, out: &mut [T], f: F)
 where
     T: Send,
@@ -124,24 +111,8 @@ where
     }
 }
 
-/// [`scatter`] that also hands `f` the particle's own entry of `per`, an output buffer in bin
-/// order (`per[i]` belongs to particle `bins.order[i]`): `f(particle, entry, chunk, first)`.
-pub fn scatter_with<T, O, F>(grid: &GridSpec, bins: &Bins, out: &mut [T], per: &mut [O], f: F)
-where
-    T: Send,
-    O: Send,
-    F: Fn(usize, &mut O, &mut [T], usize) + Sync,
-{
-    scatter_with_slabs(grid, bins, out, per, |ps, os, c, first| {
-        for (&p, o) in ps.iter().zip(os) {
-            f(p as usize, o, c, first);
-        }
-    });
-}
-
-/// [`scatter_with`] one slab at a time: `f(particles, entries, chunk, first_layer)` gets a
-/// slab's particles (in the order they must be processed), their entries of `per` and the grid
-/// chunk they write.
+/// [`scatter_slabs`] that also hands `f` the slab's entries of `per`, an output buffer in bin
+/// order (`per[i]` belongs to particle `bins.order[i]`): `f(particles, entries, chunk, first)`.
 pub fn scatter_with_slabs<T, O, F>(grid: &GridSpec, bins: &Bins, out: &mut [T], per: &mut [O], f: F)
 where
     T: Send,
@@ -153,7 +124,7 @@ where
     debug_assert_eq!(per.len(), bins.order.len());
     let chunk = 6 * layer;
     // Split `per` by slab, then by parity (even slabs pair with the chunks at 6k, odd ones with
-    // the chunks at 6k + 3, as in `scatter`).
+    // the chunks at 6k + 3, as in `scatter_slabs`).
     let (mut even, mut odd) = (Vec::new(), Vec::new());
     let mut rest = per;
     for s in 0..bins.start.len().saturating_sub(1) {

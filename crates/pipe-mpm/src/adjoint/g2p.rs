@@ -1,7 +1,7 @@
 //! Adjoint of G2P. With `v_p = Σ w v_i`, `C_p = (4/dx²) Σ w v_i dposᵀ`, `dpos = x_i − x_p`:
 //! `v̄_i += w (v̄_p + (4/dx²) C̄_p dpos)` (scattered, coloured) and
 //! `x̄_p += Σ ∇w (v_i·v̄_p + (4/dx²) v_iᵀ C̄_p dpos) − (4/dx²) Σ w C̄_pᵀ v_i`, both in one pass
-//! over the stencil (run through [`crate::scatter::scatter_with`]).
+//! over the stencil (run through [`crate::scatter::scatter_with_slabs`]).
 
 use glam::{DMat3, DVec3};
 

@@ -1,5 +1,6 @@
 //! Small deterministic random numbers and matrices for the SVD / polar tests (SplitMix64, no
-//! dependency). Included with `#[path = "common/rng.rs"] mod rng;`.
+//! dependency). Included with `#[path = "common/rng.rs"] mod rng;` (from `benches/`:
+//! `"../tests/common/rng.rs"`).
 #![allow(dead_code)]
 
 use glam::{DMat3, DQuat, DVec3};
