@@ -12,7 +12,8 @@
 //! Extra modes (run before divan, printing one JSON line each, then exit if set):
 //! * `MPM_AD=1`: forward (checkpointed tape) and backward timed separately, 16 substeps,
 //!   N = 20k, G = 32, nh and fcr, threads from `MPM_AD_THREADS` (default 1), median of
-//!   `MPM_AD_REPS` (default 3) after one warm-up; `MPM_AD_N` changes N.
+//!   `MPM_AD_REPS` (default 3) after one warm-up; `MPM_AD_N` changes N, `MPM_AD_CASE=nh|fcr`
+//!   runs one model.
 //! * `MPM_ROLLOUT=run|tape|tape+bwd`: one differentiable rollout of `MPM_FRAMES` (14) frames of
 //!   `MPM_SUBSTEPS_PER_FRAME` (50) substeps, N = 20k, G = 32, nh, checkpoint per frame; for
 //!   peak-memory measurements with `/usr/bin/time -v` (`run` = plain forward, no tape);
@@ -112,8 +113,13 @@ fn ad_split() {
     let threads = env_usize("MPM_AD_THREADS", 1);
     let steps = env_usize("MPM_AD_STEPS", 16);
     let every = env_usize("MPM_AD_EVERY", 4);
-    ad_case("nh", NeoHookean, steps, every, threads);
-    ad_case("fcr", FixedCorotated, steps, every, threads);
+    let case = std::env::var("MPM_AD_CASE").unwrap_or_default();
+    if case.is_empty() || case == "nh" {
+        ad_case("nh", NeoHookean, steps, every, threads);
+    }
+    if case.is_empty() || case == "fcr" {
+        ad_case("fcr", FixedCorotated, steps, every, threads);
+    }
 }
 
 fn rss_kib() -> usize {

@@ -86,6 +86,11 @@ pub(crate) trait Lanes: Copy {
         let a = self.store(v);
         (a[0] + a[1]) + (a[2] + a[3])
     }
+    /// [`Self::hsum`] of two vectors at once (same sums, same order).
+    #[inline(always)]
+    fn hsum2(self, a: Self::V, b: Self::V) -> [f64; 2] {
+        [self.hsum(a), self.hsum(b)]
+    }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -115,6 +120,15 @@ impl Lanes for pulp::x86::V3 {
     #[inline(always)]
     fn mul(self, a: pulp::f64x4, b: pulp::f64x4) -> pulp::f64x4 {
         self.mul_f64x4(a, b)
+    }
+
+    #[inline(always)]
+    fn hsum2(self, a: pulp::f64x4, b: pulp::f64x4) -> [f64; 2] {
+        // [a0 + a1, b0 + b1, a2 + a3, b2 + b3], then the halves added: the order of `hsum`.
+        let h = self.avx._mm256_hadd_pd(pulp::cast(a), pulp::cast(b));
+        let lo = self.avx._mm256_castpd256_pd128(h);
+        let hi = self.avx._mm256_extractf128_pd::<1>(h);
+        pulp::cast(self.sse2._mm_add_pd(lo, hi))
     }
 
     #[inline(always)]
@@ -159,5 +173,64 @@ impl Lanes for Scalar {
     #[inline(always)]
     fn floor(self, x: f64) -> f64 {
         crate::grid::floor1(x)
+    }
+}
+
+/// Whether some value of `data` is NaN or ±Inf: `0·x` is NaN exactly for those, so the lanes
+/// accumulate `x·0 + acc` and stay 0 otherwise (two vectors of four per step).
+#[inline(always)]
+pub(crate) fn any_non_finite<L: Lanes>(l: L, data: &[f64]) -> bool {
+    let zero = l.splat(0.0);
+    let (mut a, mut b) = (zero, zero);
+    let mut blocks = data.chunks_exact(8);
+    for x in &mut blocks {
+        a = l.fma(l.load([x[0], x[1], x[2], x[3]]), zero, a);
+        b = l.fma(l.load([x[4], x[5], x[6], x[7]]), zero, b);
+    }
+    let sum = l.hsum(l.mul(a, b));
+    !sum.is_finite() || !blocks.remainder().iter().all(|x| x.is_finite())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    struct Probe<'a>(&'a [f64]);
+
+    impl WithLanes for Probe<'_> {
+        type Output = (bool, [f64; 2]);
+
+        #[inline(always)]
+        fn with<L: Lanes>(self, l: L) -> (bool, [f64; 2]) {
+            let a = l.load([1e-17, 1.0, -1.0, 3.0]);
+            let b = l.load([0.1, 0.2, 0.3, 1e20]);
+            (any_non_finite(l, self.0), l.hsum2(a, b))
+        }
+    }
+
+    /// Both instruction sets flag a NaN/Inf at every position (in the blocks of eight and in
+    /// the remainder) and nothing else; `hsum2` sums in `hsum`'s order.
+    #[test]
+    fn non_finite_probe_and_pair_sums() {
+        let isas = [Isa::detect(), Isa::Baseline];
+        for n in [0, 5, 8, 13, 24] {
+            let finite: Vec<f64> = (0..n).map(|i| 1e300 * (i as f64 - 3.0)).collect();
+            for isa in isas {
+                assert!(!isa.run_lanes(Probe(&finite)).0, "n={n}");
+            }
+            for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+                for at in 0..n {
+                    let mut v = finite.clone();
+                    v[at] = bad;
+                    for isa in isas {
+                        assert!(isa.run_lanes(Probe(&v)).0, "n={n} at={at} {bad}");
+                    }
+                }
+            }
+        }
+        let want = [(1e-17 + 1.0) + (-1.0 + 3.0), (0.1 + 0.2) + (0.3 + 1e20)];
+        for isa in isas {
+            assert_eq!(isa.run_lanes(Probe(&[])).1, want);
+        }
     }
 }

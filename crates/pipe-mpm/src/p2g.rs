@@ -170,13 +170,3 @@ fn scatter_particle<L: Lanes>(
         }
     }
 }
-
-/// `a s + b`, lane by lane, fused.
-#[inline(always)]
-pub(crate) fn fma3(a: DVec3, s: f64, b: DVec3) -> DVec3 {
-    DVec3::new(
-        a.x.mul_add(s, b.x),
-        a.y.mul_add(s, b.y),
-        a.z.mul_add(s, b.z),
-    )
-}

@@ -10,7 +10,6 @@ use crate::g2p::gather;
 use crate::grid::GridSpec;
 use crate::grid_update::NodeVel;
 use crate::isa::{Lanes, WithLanes};
-use crate::p2g::fma3;
 
 /// The G2P adjoint of one slab's particles, including the position update
 /// `x' = hold(x + dt v')`, as a unit of work for [`crate::isa::Isa::run_lanes`]: writes
@@ -101,7 +100,12 @@ pub(crate) fn g2p_adjoint_particle<L: Lanes>(
     let gcd = *gc * d_inv;
     let zw = ZWeights::new(l, &st, &p);
     let lanes3 = |v: DVec3| l.load([v.x, v.y, v.z, 0.0]);
-    let gz = lanes3(gcd.z_axis);
+    let (gvl, gcx, gcy, gz) = (
+        lanes3(gv),
+        lanes3(gcd.x_axis),
+        lanes3(gcd.y_axis),
+        lanes3(gcd.z_axis),
+    );
     // Node k of a row gets w_xy (wz_k y + wz_k pz_k ȳ_z); the second term is fixed per particle.
     let wz: [L::V; 3] = std::array::from_fn(|k| l.splat(st.w[k].z));
     let gzk: [L::V; 3] = std::array::from_fn(|k| l.mul(gz, l.splat(st.w[k].z * p[k].z)));
@@ -109,25 +113,30 @@ pub(crate) fn g2p_adjoint_particle<L: Lanes>(
     let (mut v, mut gx) = (zero, DVec3::ZERO);
     for i in 0..3 {
         let (wx, dwx) = (st.w[i].x, st.dw[i].x);
-        let y_x = fma3(gcd.x_axis, p[i].x, gv);
+        let y_x = l.fma(gcx, l.splat(p[i].x), gvl);
+        let mut gx_i = DVec3::ZERO;
         for (j, pj) in p.iter().enumerate() {
             let (wy, dwy) = (st.w[j].y, st.dw[j].y);
-            let y_xy = fma3(gcd.y_axis, pj.y, y_x);
+            let y = l.fma(gcy, l.splat(pj.y), y_x);
             let wxy = wx * wy;
             let row = grid.row(vgrid, st.local, i, j);
             let [s, sp, ds, dsp] = zw.row_sums(l, [0, 1, 2].map(|k| l.load(row[k].lanes())));
-            let y = lanes3(y_xy);
             let out = grid.row_mut(chunk, first, st.local, i, j);
             let wxy_v = l.splat(wxy);
             for (k, o) in out.iter_mut().enumerate() {
                 let yk = l.fma(y, wz[k], gzk[k]);
                 *o = NodeVel::from_lanes(l.store(l.fma(yk, wxy_v, l.load(o.lanes()))));
             }
-            let sw = l.hsum(l.fma(sp, gz, l.mul(s, y)));
-            let sdw = l.hsum(l.fma(dsp, gz, l.mul(ds, y)));
+            let [sw, sdw] = l.hsum2(l.fma(sp, gz, l.mul(s, y)), l.fma(dsp, gz, l.mul(ds, y)));
             v = l.fma(s, l.splat(wxy), v);
-            gx += DVec3::new(dwx * wy * sw, wx * dwy * sw, wxy * sdw);
+            // x̄ weight terms, factored by i: (wx' Σ_j wy sw, wx Σ_j wy' sw, wx Σ_j wy sdw).
+            gx_i = DVec3::new(
+                wy.mul_add(sw, gx_i.x),
+                dwy.mul_add(sw, gx_i.y),
+                wy.mul_add(sdw, gx_i.z),
+            );
         }
+        gx += DVec3::new(dwx * gx_i.x, wx * gx_i.y, wx * gx_i.z);
     }
     let v = l.store(v);
     gx * grid.inv_dx - gcd.transpose() * DVec3::new(v[0], v[1], v[2])

@@ -16,7 +16,7 @@ use rayon::prelude::*;
 use crate::error::MpmError;
 use crate::grid::{NodeBox, Stencil};
 use crate::grid_update::NodeVel;
-use crate::isa::{Isa, Lanes, WithLanes};
+use crate::isa::{Isa, Lanes, WithLanes, any_non_finite};
 use crate::models::Constitutive;
 use crate::p2g::Node;
 use crate::scatter::scatter_with_slabs;
@@ -107,7 +107,6 @@ impl<M: Constitutive> WithLanes for ParticleAdjoint<'_, M> {
             first,
             g: (gx, gv, gc, gf, gmass, gvol, gmu, glam, gfam),
         } = self;
-        let mut bad = false;
         for (i, gx) in gx.iter_mut().enumerate() {
             let p = first + i;
             let extra = w.extra.as_ref().map_or(DVec3::ZERO, |e| e[p]);
@@ -148,10 +147,12 @@ impl<M: Constitutive> WithLanes for ParticleAdjoint<'_, M> {
                     M::NAME
                 );
             }
-            bad |=
-                !(gx.is_finite() && gv[i].is_finite() && gc[i].is_finite() && gf_new.is_finite());
         }
-        bad
+        use bytemuck::cast_slice;
+        any_non_finite(l, cast_slice(gx))
+            || any_non_finite(l, cast_slice(gv))
+            || any_non_finite(l, cast_slice(gc))
+            || any_non_finite(l, cast_slice(gf))
     }
 }
 

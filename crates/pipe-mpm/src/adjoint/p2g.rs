@@ -10,7 +10,7 @@ use super::ZWeights;
 use crate::grid::GridSpec;
 use crate::isa::{Lanes, WithLanes};
 use crate::math::ddot;
-use crate::p2g::{Node, affine, fma3};
+use crate::p2g::{Node, affine};
 
 /// Per-particle gradients from P2G.
 #[derive(Debug, Clone, Copy, Default)]
@@ -72,7 +72,9 @@ pub(crate) fn p2g_adjoint_particle<L: Lanes>(l: L, inp: &P2gAdjoint<'_>) -> P2gG
     let mom = v * mass + extra;
     let p = st.offsets(grid.dx);
     let zw = ZWeights::new(l, &st, &p);
-    let az = l.load([a.z_axis.x, a.z_axis.y, a.z_axis.z, 0.0]);
+    let lanes3 = |v: DVec3| l.load([v.x, v.y, v.z, 0.0]);
+    let (ax, ay, az) = (lanes3(a.x_axis), lanes3(a.y_axis), lanes3(a.z_axis));
+    let mom4 = l.load([mom.x, mom.y, mom.z, mass]);
     let zero = l.splat(0.0);
     let (mut ga0, mut ga2, mut sum_wg) = (zero, zero, zero);
     let mut by_j = [zero; 3];
@@ -80,22 +82,28 @@ pub(crate) fn p2g_adjoint_particle<L: Lanes>(l: L, inp: &P2gAdjoint<'_>) -> P2gG
     for i in 0..3 {
         let (wx, dwx, px) = (st.w[i].x, st.dw[i].x, p[i].x);
         let mut s_i = zero;
-        let mom_x = fma3(a.x_axis, px, mom);
+        let mut gx_i = DVec3::ZERO;
+        let mom_x = l.fma(ax, l.splat(px), mom4);
         for (j, b) in by_j.iter_mut().enumerate() {
             let (wy, dwy, py) = (st.w[j].y, st.dw[j].y, p[j].y);
-            let mom_xy = fma3(a.y_axis, py, mom_x);
+            // (mom + A dpos_xy, m): the mass lane is 0·p + m = m.
+            let m4 = l.fma(ay, l.splat(py), mom_x);
             let row = grid.row(g_nodes, st.local, i, j);
             let [s, sp, ds, dsp] = zw.row_sums(l, [0, 1, 2].map(|k| l.load(row[k].lanes())));
             // Σ_k wz_k t_k = s·(mom_ij, m) + sp·(A₂, 0), likewise with wz'.
-            let m4 = l.load([mom_xy.x, mom_xy.y, mom_xy.z, mass]);
-            let sw = l.hsum(l.fma(sp, az, l.mul(s, m4)));
-            let sdw = l.hsum(l.fma(dsp, az, l.mul(ds, m4)));
+            let [sw, sdw] = l.hsum2(l.fma(sp, az, l.mul(s, m4)), l.fma(dsp, az, l.mul(ds, m4)));
             let wxy = wx * wy;
             s_i = l.fma(s, l.splat(wy), s_i);
             *b = l.fma(s, l.splat(wxy), *b);
             ga2 = l.fma(sp, l.splat(wxy), ga2);
-            gx += DVec3::new(dwx * wy * sw, wx * dwy * sw, wxy * sdw);
+            // x̄ weight terms, factored by i: (wx' Σ_j wy sw, wx Σ_j wy' sw, wx Σ_j wy sdw).
+            gx_i = DVec3::new(
+                wy.mul_add(sw, gx_i.x),
+                dwy.mul_add(sw, gx_i.y),
+                wy.mul_add(sdw, gx_i.z),
+            );
         }
+        gx += DVec3::new(dwx * gx_i.x, wx * gx_i.y, wx * gx_i.z);
         ga0 = l.fma(s_i, l.splat(wx * px), ga0);
         sum_wg = l.fma(s_i, l.splat(wx), sum_wg);
     }
