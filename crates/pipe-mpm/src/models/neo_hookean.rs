@@ -32,14 +32,17 @@ impl Constitutive for NeoHookean {
         g_f: &DMat3,
         g_tau: &DMat3,
     ) -> ModelGrad {
-        let j = f.determinant();
+        // d J / dF = cof(F), so J = F₀·cof(F)₀ and d ln J / dF = cof(F)/J.
+        let cof = cofactor(f);
+        let j = f.x_axis.dot(cof.x_axis);
         let tr_g = trace(g_tau);
-        // d ln J / dF = cof(F)/J.
-        let g = *g_f + (*g_tau + g_tau.transpose()) * *f * mu + cofactor(f) * (lam * tr_g / j);
+        // h = 2 sym(τ̄) F: ∂(τ̄ : μ F Fᵀ)/∂F = μ h and τ̄ : F Fᵀ = ½ h : F.
+        let h = (*g_tau + g_tau.transpose()) * *f;
+        let g = *g_f + h * mu + cof * (lam * tr_g / j);
         ModelGrad {
             f_tmp: g,
             c: DMat3::ZERO,
-            mu: ddot(g_tau, &(*f * f.transpose())) - tr_g,
+            mu: 0.5 * ddot(&h, f) - tr_g,
             lam: tr_g * j.ln(),
             family: FamilyGrad::default(),
         }
