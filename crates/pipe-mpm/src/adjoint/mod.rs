@@ -127,7 +127,9 @@ impl<M: Constitutive> WithLanes for ParticleAdjoint<'_, M> {
                 },
             );
             let f_tmp = model.predict(c, &s.f[p], dt);
-            let mg = model.update_adjoint(&f_tmp, c, mat.mu[p], mat.lam[p], dt, &gf[i], &pg.tau);
+            let (mu, lam, tau) = (mat.mu[p], mat.lam[p], &w.tau[p]);
+            let mg =
+                model.update_adjoint_given_stress(&f_tmp, c, mu, lam, dt, tau, &gf[i], &pg.tau);
             let (gc_pred, gf_new) = model.predict_adjoint(c, &s.f[p], dt, &mg.f_tmp);
             *gx += pg.x;
             gv[i] = pg.v;

@@ -80,6 +80,26 @@ pub trait Constitutive: Send + Sync + std::fmt::Debug + Clone {
         g_tau: &DMat3,
     ) -> ModelGrad;
 
+    /// [`Self::update_adjoint`] given also the stress `tau` (Pa) that [`Self::update`] returned
+    /// for this `f_tmp`, as the backward pass has it: a model may recover intermediates from it
+    /// instead of recomputing them. The default ignores `tau`.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn update_adjoint_given_stress(
+        &self,
+        f_tmp: &DMat3,
+        c: &DMat3,
+        mu: f64,
+        lam: f64,
+        dt: f64,
+        tau: &DMat3,
+        g_f: &DMat3,
+        g_tau: &DMat3,
+    ) -> ModelGrad {
+        let _ = tau;
+        self.update_adjoint(f_tmp, c, mu, lam, dt, g_f, g_tau)
+    }
+
     /// Modulus (Pa) of the fastest wave for the CFL limit: `λ + 2μ` (P-wave) by default.
     fn wave_modulus(&self, mu: f64, lam: f64) -> f64 {
         lam + 2.0 * mu
