@@ -5,10 +5,11 @@
 //! FMA they get `pulp`'s `f64x4` vectors and are compiled with those features enabled
 //! (`pulp`'s `vectorize`); elsewhere they get plain arrays and `f64::mul_add` (a software
 //! fused multiply-add: slower, but bit-identical, since a fused multiply-add is exactly rounded
-//! either way). Everything called inside must be `#[inline(always)]` to inherit the features,
-//! and the work is handed over as a [`WithLanes`] value whose `with` is `#[inline(always)]` (a
-//! closure's body is not reliably inlined, and would then run without the features, calling
-//! the software `fma`).
+//! either way). The G2P adjoint alone also enables AVX-512 when present
+//! ([`Isa::run_lanes_avx512`]: the same lanes with 32 registers). Everything called inside must
+//! be `#[inline(always)]` to inherit the features, and the work is handed over as a
+//! [`WithLanes`] value whose `with` is `#[inline(always)]` (a closure's body is not reliably
+//! inlined, and would then run without the features, calling the software `fma`).
 
 /// The instruction set the kernels run with (detected once per call site; `pulp` caches it).
 #[derive(Debug, Clone, Copy)]
@@ -21,15 +22,49 @@ pub(crate) enum Isa {
     Baseline,
 }
 
+/// Test hook: caps the instruction set the kernels may use (0: the best the CPU has, 1: AVX2 +
+/// FMA without AVX-512, 2: baseline), so a test can run every path in one process.
+#[cfg(test)]
+pub(crate) static CAP: std::sync::atomic::AtomicU8 = std::sync::atomic::AtomicU8::new(0);
+
+#[cfg(test)]
+fn cap() -> u8 {
+    CAP.load(std::sync::atomic::Ordering::Relaxed)
+}
+
+#[cfg(not(test))]
+#[inline(always)]
+fn cap() -> u8 {
+    0
+}
+
 impl Isa {
     /// The best instruction set of this CPU.
     #[inline]
     pub(crate) fn detect() -> Self {
         #[cfg(target_arch = "x86_64")]
-        if let Some(v) = pulp::x86::V3::try_new() {
+        if cap() < 2
+            && let Some(v) = pulp::x86::V3::try_new()
+        {
             return Isa::Fma(v);
         }
         Isa::Baseline
+    }
+
+    /// [`Self::run_lanes`] with AVX-512 enabled as well when the CPU has it: the same four-lane
+    /// arithmetic (so the same results), but 32 vector registers. Only the G2P adjoint uses it:
+    /// its node loop spills with 16 registers and runs ~10 % faster with 32, while the forward
+    /// G2P and the per-particle adjoint were measured slightly slower (BENCHMARKS.md §3).
+    #[inline(always)]
+    pub(crate) fn run_lanes_avx512<Op: WithLanes>(self, op: Op) -> Op::Output {
+        #[cfg(target_arch = "x86_64")]
+        if let Isa::Fma(_) = self
+            && cap() < 1
+            && let Some(v) = pulp::x86::V4::try_new()
+        {
+            return v.vectorize(InLanes(Avx512(v), op));
+        }
+        self.run_lanes(op)
     }
 
     /// Runs `op` with this instruction set enabled and its [`Lanes`].
@@ -135,6 +170,52 @@ impl Lanes for pulp::x86::V3 {
     fn floor(self, x: f64) -> f64 {
         // `roundsd` (SSE4.1, part of x86-64-v3) once inlined under these features.
         x.floor()
+    }
+}
+
+/// The AVX2 lanes of [`pulp::x86::V3`], used under AVX-512's target features
+/// ([`Isa::run_lanes_avx512`]).
+#[cfg(target_arch = "x86_64")]
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Avx512(pulp::x86::V4);
+
+#[cfg(target_arch = "x86_64")]
+impl Lanes for Avx512 {
+    type V = pulp::f64x4;
+
+    #[inline(always)]
+    fn load(self, a: [f64; 4]) -> pulp::f64x4 {
+        Lanes::load(*self.0, a)
+    }
+
+    #[inline(always)]
+    fn store(self, v: pulp::f64x4) -> [f64; 4] {
+        Lanes::store(*self.0, v)
+    }
+
+    #[inline(always)]
+    fn splat(self, x: f64) -> pulp::f64x4 {
+        Lanes::splat(*self.0, x)
+    }
+
+    #[inline(always)]
+    fn fma(self, a: pulp::f64x4, b: pulp::f64x4, c: pulp::f64x4) -> pulp::f64x4 {
+        Lanes::fma(*self.0, a, b, c)
+    }
+
+    #[inline(always)]
+    fn mul(self, a: pulp::f64x4, b: pulp::f64x4) -> pulp::f64x4 {
+        Lanes::mul(*self.0, a, b)
+    }
+
+    #[inline(always)]
+    fn hsum2(self, a: pulp::f64x4, b: pulp::f64x4) -> [f64; 2] {
+        Lanes::hsum2(*self.0, a, b)
+    }
+
+    #[inline(always)]
+    fn floor(self, x: f64) -> f64 {
+        Lanes::floor(*self.0, x)
     }
 }
 
