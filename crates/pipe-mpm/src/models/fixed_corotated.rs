@@ -39,7 +39,7 @@ impl Constitutive for FixedCorotated {
     }
 
     /// With the forward stress at hand, `R` comes from it in closed form
-    /// ([`rotation_from_stress`]) instead of the polar iteration.
+    /// (`rotation_from_stress`) instead of the polar iteration.
     #[inline(always)]
     fn update_adjoint_given_stress(
         &self,
