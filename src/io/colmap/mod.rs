@@ -1,6 +1,6 @@
 //! COLMAP sparse models (`sparse/0`): `cameras`, `images`, `points3D` as `.bin` or `.txt`.
 //!
-//! Hand-written readers ([`binary`], [`text`]): no maintained crate reads the `.bin` layout.
+//! Hand-written readers (`binary`, `text`): no maintained crate reads the `.bin` layout.
 //! Poses are `cam_from_world` (X_cam = R(q)·X_world + t, q = (w, x, y, z) Hamilton), camera axes
 //! as OpenCV (x right, y down, z forward), metres as reconstructed (COLMAP's scale is
 //! arbitrary unless the model was geo-registered). `rigs` and `frames` (COLMAP ≥ 3.12) are not

@@ -1,8 +1,8 @@
 //! PLY files: point clouds and 3D Gaussian splatting (3DGS) `point_cloud.ply`.
 //!
-//! A small hand-written reader: the header is parsed first ([`header`]), every size is checked
+//! A small hand-written reader: the header is parsed first (`header`), every size is checked
 //! against the file length before anything is allocated, then the records of the one element
-//! wanted (`vertex`) are decoded from ASCII, binary little- or big-endian ([`body`]). Other
+//! wanted (`vertex`) are decoded from ASCII, binary little- or big-endian (`body`). Other
 //! elements and properties are skipped. Writers emit binary little-endian through a temporary
 //! file renamed into place ([`write`]), so a reader never sees half a file.
 //!
