@@ -114,7 +114,9 @@ pub(crate) fn g2p_adjoint_particle<L: Lanes>(
     for i in 0..3 {
         let (wx, dwx) = (st.w[i].x, st.dw[i].x);
         let y_x = l.fma(gcx, l.splat(p[i].x), gvl);
-        let mut gx_i = DVec3::ZERO;
+        // x̄ weight terms, factored by i and kept in lanes until the end of the layer:
+        // (wx' Σ_j wy a_j, wx Σ_j wy' a_j, wx Σ_j wy b_j), a_j, b_j the rows' products below.
+        let (mut acc_x, mut acc_y, mut acc_z) = (zero, zero, zero);
         for (j, pj) in p.iter().enumerate() {
             let (wy, dwy) = (st.w[j].y, st.dw[j].y);
             let y = l.fma(gcy, l.splat(pj.y), y_x);
@@ -127,16 +129,16 @@ pub(crate) fn g2p_adjoint_particle<L: Lanes>(
                 let yk = l.fma(y, wz[k], gzk[k]);
                 *o = NodeVel::from_lanes(l.store(l.fma(yk, wxy_v, l.load(o.lanes()))));
             }
-            let [sw, sdw] = l.hsum2(l.fma(sp, gz, l.mul(s, y)), l.fma(dsp, gz, l.mul(ds, y)));
+            let a = l.fma(sp, gz, l.mul(s, y));
+            let b = l.fma(dsp, gz, l.mul(ds, y));
+            let wy_v = l.splat(wy);
             v = l.fma(s, l.splat(wxy), v);
-            // x̄ weight terms, factored by i: (wx' Σ_j wy sw, wx Σ_j wy' sw, wx Σ_j wy sdw).
-            gx_i = DVec3::new(
-                wy.mul_add(sw, gx_i.x),
-                dwy.mul_add(sw, gx_i.y),
-                wy.mul_add(sdw, gx_i.z),
-            );
+            acc_x = l.fma(a, wy_v, acc_x);
+            acc_y = l.fma(a, l.splat(dwy), acc_y);
+            acc_z = l.fma(b, wy_v, acc_z);
         }
-        gx += DVec3::new(dwx * gx_i.x, wx * gx_i.y, wx * gx_i.z);
+        let [sx, sy] = l.hsum2(acc_x, acc_y);
+        gx += DVec3::new(dwx * sx, wx * sy, wx * l.hsum(acc_z));
     }
     let v = l.store(v);
     gx * grid.inv_dx - gcd.transpose() * DVec3::new(v[0], v[1], v[2])
