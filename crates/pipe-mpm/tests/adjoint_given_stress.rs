@@ -23,9 +23,21 @@ fn rel_diff(a: &ModelGrad, b: &ModelGrad) -> f64 {
     d / scale
 }
 
+/// μ, λ (Pa) of the tests: E = 1 kPa, ν = 0.2.
+const LAME: (f64, f64) = (1e3 / 2.4, 1e3 * 0.2 / (1.2 * 0.6));
+
 /// Both adjoints of `model` at `f` with the stress `tau` handed over.
 fn both<M: Constitutive>(model: &M, f: &DMat3, tau: &DMat3, g: &(DMat3, DMat3)) -> f64 {
-    let (mu, lam) = (1e3 / 2.4, 1e3 * 0.2 / (1.2 * 0.6));
+    both_with(model, f, tau, g, LAME)
+}
+
+fn both_with<M: Constitutive>(
+    model: &M,
+    f: &DMat3,
+    tau: &DMat3,
+    g: &(DMat3, DMat3),
+    (mu, lam): (f64, f64),
+) -> f64 {
     let c = DMat3::from_cols_array(&[0.1, -0.2, 0.3, 0.0, 0.5, -0.1, 0.2, 0.1, -0.4]);
     let a = model.update_adjoint(f, &c, mu, lam, DT, &g.0, &g.1);
     let b = model.update_adjoint_given_stress(f, &c, mu, lam, DT, tau, &g.0, &g.1);
@@ -33,7 +45,10 @@ fn both<M: Constitutive>(model: &M, f: &DMat3, tau: &DMat3, g: &(DMat3, DMat3)) 
 }
 
 fn stress_of<M: Constitutive>(model: &M, f: &DMat3) -> DMat3 {
-    let (mu, lam) = (1e3 / 2.4, 1e3 * 0.2 / (1.2 * 0.6));
+    stress_with(model, f, LAME)
+}
+
+fn stress_with<M: Constitutive>(model: &M, f: &DMat3, (mu, lam): (f64, f64)) -> DMat3 {
     model.update(f, &DMat3::ZERO, mu, lam, DT).1
 }
 
@@ -91,4 +106,30 @@ fn fixed_corotated_falls_back_where_the_stress_cannot_give_r() {
     let d = both(&FixedCorotated, &f, &stress_of(&FixedCorotated, &other), &g);
     assert!(d < 1e-11, "foreign stress: {d:e}");
     assert!(both(&FixedCorotated, &f, &DMat3::ZERO, &g) < 1e-11);
+}
+
+/// The extremes the simulator accepts (E from 1e2 to 1e9 Pa, ν from 0 to 0.499): λ/μ up to
+/// ~500 amplifies the rounding of the stress, which must stay far below the gradient tolerance.
+#[test]
+fn fixed_corotated_stress_rotation_holds_at_extreme_materials() {
+    let mut rng = Rng::seeded("adjoint_given_stress_extremes");
+    let g = (rng.mat(1.0), rng.mat(1.0));
+    for (e, nu) in [
+        (1e2, 0.0),
+        (1e9, 0.0),
+        (1e2, 0.499),
+        (1e9, 0.499),
+        (3e5, 0.3),
+    ] {
+        let lame = pipe_mpm::lame(e, nu).unwrap();
+        let mut worst = 0.0f64;
+        for amp in [1e-6, 1e-3, 0.1, 0.4] {
+            for _ in 0..200 {
+                let f = rng.rotation() * (DMat3::IDENTITY + rng.mat(amp));
+                let tau = stress_with(&FixedCorotated, &f, lame);
+                worst = worst.max(both_with(&FixedCorotated, &f, &tau, &g, lame));
+            }
+        }
+        assert!(worst < 1e-10, "E = {e:e}, nu = {nu}: {worst:e}");
+    }
 }
