@@ -110,7 +110,7 @@ impl<M: Constitutive> WithLanes for ParticleAdjoint<'_, M> {
         for (i, gx) in gx.iter_mut().enumerate() {
             let p = first + i;
             let extra = w.extra.as_ref().map_or(DVec3::ZERO, |e| e[p]);
-            let c = &s.c[p];
+            let (c, f, tau) = (&s.c[p], &s.f[p], &w.tau[p]);
             let pg = p2g::p2g_adjoint_particle(
                 l,
                 &p2g::P2gAdjoint {
@@ -120,17 +120,17 @@ impl<M: Constitutive> WithLanes for ParticleAdjoint<'_, M> {
                     x: s.x[p],
                     v: s.v[p],
                     c,
-                    tau: &w.tau[p],
+                    tau,
                     mass: mat.mass[p],
                     volume: mat.volume[p],
                     extra,
                 },
             );
-            let f_tmp = model.predict(c, &s.f[p], dt);
-            let (mu, lam, tau) = (mat.mu[p], mat.lam[p], &w.tau[p]);
+            let f_tmp = model.predict(c, f, dt);
+            let (mu, lam) = (mat.mu[p], mat.lam[p]);
             let mg =
                 model.update_adjoint_given_stress(&f_tmp, c, mu, lam, dt, tau, &gf[i], &pg.tau);
-            let (gc_pred, gf_new) = model.predict_adjoint(c, &s.f[p], dt, &mg.f_tmp);
+            let (gc_pred, gf_new) = model.predict_adjoint(c, f, dt, &mg.f_tmp);
             *gx += pg.x;
             gv[i] = pg.v;
             gc[i] = pg.c + mg.c + gc_pred;
