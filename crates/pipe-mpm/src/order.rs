@@ -116,13 +116,14 @@ impl Order {
         }
     }
 
-    /// A gradient in slot order.
-    pub(crate) fn sort_grad(&self, g: &StateGrad) -> StateGrad {
-        StateGrad {
-            x: self.gather(&g.x),
-            v: self.gather(&g.v),
-            c: self.gather(&g.c),
-            f: self.gather(&g.f),
+    /// Adds `g` (caller's order) into `dst` (slot order, same length).
+    pub(crate) fn add_sorted_grad(&self, g: &StateGrad, dst: &mut StateGrad) {
+        for (i, &p) in self.order.iter().enumerate() {
+            let p = p as usize;
+            dst.x[i] += g.x[p];
+            dst.v[i] += g.v[p];
+            dst.c[i] += g.c[p];
+            dst.f[i] += g.f[p];
         }
     }
 

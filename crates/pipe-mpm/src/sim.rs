@@ -75,6 +75,9 @@ pub struct RunReport {
 pub(crate) struct Work {
     pub bins: Bins,
     pub tau: Vec<DMat3>,
+    /// [`Constitutive::update_with_aux`]'s scalar per particle (empty unless
+    /// [`Constitutive::STRESS_AUX`]).
+    pub aux: Vec<f64>,
     pub nodes: Vec<Node>,
     /// Nodes `nodes` and `vgrid` hold for this substep (outside it `nodes` is zero and `vgrid`
     /// is stale).
@@ -109,6 +112,27 @@ struct StressChunk<'a, M> {
     lam: &'a [f64],
     f: FIo<'a>,
     tau: &'a mut [DMat3],
+    /// Written when [`Constitutive::STRESS_AUX`] (else empty).
+    aux: &'a mut [f64],
+}
+
+/// `v` (resized to `n`) in chunks of `chunk` when `used`, else as many empty slices: per-chunk
+/// outputs that only some models write, zipped with the other chunks of a parallel pass.
+pub(crate) fn chunks_or_empty<T: Default + Clone>(
+    v: &mut Vec<T>,
+    n: usize,
+    chunk: usize,
+    used: bool,
+) -> Vec<&mut [T]> {
+    if used {
+        v.resize(n, T::default());
+        v.chunks_mut(chunk).collect()
+    } else {
+        v.clear();
+        (0..n.div_ceil(chunk))
+            .map(|_| <&mut [T]>::default())
+            .collect()
+    }
 }
 
 impl<M: Constitutive> WithLanes for StressChunk<'_, M> {
@@ -124,6 +148,7 @@ impl<M: Constitutive> WithLanes for StressChunk<'_, M> {
             lam,
             mut f,
             tau,
+            aux,
         } = self;
         let mut bad = false;
         for (p, tau) in tau.iter_mut().enumerate() {
@@ -132,8 +157,11 @@ impl<M: Constitutive> WithLanes for StressChunk<'_, M> {
                 FIo::From(old, _) | FIo::Read(old) => old[p],
             };
             let ft = model.predict(&c[p], &f0, dt);
-            let (f_new, t_new) = model.update(&ft, &c[p], mu[p], lam[p], dt);
+            let (f_new, t_new, a) = model.update_with_aux(&ft, &c[p], mu[p], lam[p], dt);
             *tau = t_new;
+            if M::STRESS_AUX {
+                aux[p] = a;
+            }
             match &mut f {
                 FIo::InPlace(out) | FIo::From(_, out) => {
                     out[p] = f_new;
@@ -288,11 +316,13 @@ impl<M: Constitutive> Simulator<M> {
                 None => (&s.c, None),
             };
             let isa = Isa::detect();
+            let aux = chunks_or_empty(&mut w.aux, n, STRESS_CHUNK, M::STRESS_AUX);
             w.non_finite =
                 s.f.par_chunks_mut(STRESS_CHUNK)
                     .zip(w.tau.par_chunks_mut(STRESS_CHUNK))
+                    .zip(aux)
                     .enumerate()
-                    .map(|(k, (f, tau))| {
+                    .map(|(k, ((f, tau), aux))| {
                         let r = k * STRESS_CHUNK..k * STRESS_CHUNK + f.len();
                         let f = match f_old {
                             Some(fo) => FIo::From(&fo[r.clone()], f),
@@ -306,6 +336,7 @@ impl<M: Constitutive> Simulator<M> {
                             lam: &mat.lam[r],
                             f,
                             tau,
+                            aux,
                         })
                     })
                     .reduce(|| false, |a, b| a | b);
@@ -330,10 +361,12 @@ impl<M: Constitutive> Simulator<M> {
     pub(crate) fn stress(&self, s: &State, mat: &Material, w: &mut Work) {
         let (dt, model, isa) = (self.config.dt, &self.model, Isa::detect());
         w.tau.resize(s.len(), DMat3::ZERO);
+        let aux = chunks_or_empty(&mut w.aux, s.len(), STRESS_CHUNK, M::STRESS_AUX);
         w.tau
             .par_chunks_mut(STRESS_CHUNK)
+            .zip(aux)
             .enumerate()
-            .for_each(|(k, tau)| {
+            .for_each(|(k, (tau, aux))| {
                 let r = k * STRESS_CHUNK..k * STRESS_CHUNK + tau.len();
                 isa.run_lanes(StressChunk {
                     model,
@@ -343,6 +376,7 @@ impl<M: Constitutive> Simulator<M> {
                     lam: &mat.lam[r.clone()],
                     f: FIo::Read(&s.f[r]),
                     tau,
+                    aux,
                 });
             });
     }

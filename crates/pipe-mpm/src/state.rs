@@ -394,6 +394,11 @@ impl StateGrad {
         self.x.is_empty()
     }
 
+    /// `true` when every array holds `n` entries.
+    pub(crate) fn has_len(&self, n: usize) -> bool {
+        self.x.len() == n && self.v.len() == n && self.c.len() == n && self.f.len() == n
+    }
+
     /// First non-finite entry, as `(quantity, particle)` with quantity `"dL/dx"`, `"dL/dv"`,
     /// `"dL/dC"` or `"dL/dF"`.
     pub fn first_non_finite(&self) -> Option<(&'static str, usize)> {

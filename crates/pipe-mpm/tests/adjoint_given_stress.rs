@@ -40,7 +40,8 @@ fn both_with<M: Constitutive>(
 ) -> f64 {
     let c = DMat3::from_cols_array(&[0.1, -0.2, 0.3, 0.0, 0.5, -0.1, 0.2, 0.1, -0.4]);
     let a = model.update_adjoint(f, &c, mu, lam, DT, &g.0, &g.1);
-    let b = model.update_adjoint_given_stress(f, &c, mu, lam, DT, tau, &g.0, &g.1);
+    let aux = model.update_with_aux(f, &c, mu, lam, DT).2;
+    let b = model.update_adjoint_given_stress(f, &c, mu, lam, DT, (tau, aux), &g.0, &g.1);
     rel_diff(&a, &b)
 }
 

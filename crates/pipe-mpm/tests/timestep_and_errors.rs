@@ -287,3 +287,38 @@ fn family_dispatch_runs_the_named_model() {
         "{e}"
     );
 }
+
+/// A seed gradient whose arrays do not all hold one entry per particle is refused with
+/// `GradientMismatch`, whether the run reordered the particles or not, and at the final
+/// substep as well as inside the tape.
+#[test]
+fn malformed_seed_gradient_is_refused() {
+    let sim = Simulator::new(NeoHookean, cfg(1e-4)).unwrap();
+    let in_cell_order = vec![DVec3::new(0.3, 0.5, 0.5), DVec3::new(0.7, 0.5, 0.5)];
+    let reordered = vec![DVec3::new(0.7, 0.5, 0.5), DVec3::new(0.3, 0.5, 0.5)];
+    for x in [in_cell_order, reordered] {
+        let mat = Material::from_e_nu(2, 1e-5, 1000.0, 1e4, 0.3).unwrap();
+        let mut s = State::at_rest(x);
+        let tape = sim.forward_tape(&mut s, &mat, 0.0, 4, 2).unwrap();
+        let mut short_v = pipe_mpm::StateGrad::zeros(2);
+        short_v.v.pop();
+        for at in [4, 2] {
+            let e = sim
+                .backward(
+                    &tape,
+                    &mat,
+                    |k, _| (k == at).then(|| short_v.clone()),
+                    Default::default(),
+                )
+                .unwrap_err();
+            assert!(matches!(e, MpmError::GradientMismatch(_)), "{e}");
+        }
+        let ok = sim.backward(
+            &tape,
+            &mat,
+            |k, _| (k == 2).then(|| pipe_mpm::StateGrad::zeros(2)),
+            Default::default(),
+        );
+        assert!(ok.is_ok());
+    }
+}

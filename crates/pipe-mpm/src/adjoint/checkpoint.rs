@@ -173,32 +173,39 @@ impl<M: Constitutive> Simulator<M> {
                 reason: "must be >= 1",
             });
         }
+        let np = tape.final_state.len();
         let Some(o) = &tape.order else {
-            let plain = |k: usize, s: &State| {
-                seed(
-                    k,
-                    SeedState {
-                        slots: s,
-                        order: None,
-                    },
-                )
+            let plain = |k: usize, s: &State, g: &mut StateGrad| {
+                let slots = SeedState {
+                    slots: s,
+                    order: None,
+                };
+                match seed(k, slots) {
+                    Some(extra) if extra.has_len(np) => {
+                        g.add_assign(&extra);
+                        Ok(())
+                    }
+                    Some(_) => Err(seed_len_mismatch()),
+                    None => Ok(()),
+                }
             };
             return self.backward_in_order(tape, mat, plain, opts);
         };
-        // The tape is in slot order: reverse there, translating the seeds and the results.
-        let np = tape.final_state.len();
-        let sorted_seed = |k: usize, s: &State| {
+        // The tape is in slot order: reverse there, adding each seed (caller's order) into the
+        // slot-order gradient through the permutation (no sorted copy of the seed).
+        let sorted_seed = |k: usize, s: &State, g: &mut StateGrad| {
             let view = SeedState {
                 slots: s,
                 order: Some(o),
             };
-            seed(k, view).map(|g| {
-                if g.len() == np && g.v.len() == np && g.c.len() == np && g.f.len() == np {
-                    o.sort_grad(&g)
-                } else {
-                    g // the reverser reports the length mismatch
+            match seed(k, view) {
+                Some(extra) if extra.has_len(np) => {
+                    o.add_sorted_grad(&extra, g);
+                    Ok(())
                 }
-            })
+                Some(_) => Err(seed_len_mismatch()),
+                None => Ok(()),
+            }
         };
         let grads =
             self.sorted(o)
@@ -222,23 +229,20 @@ impl<M: Constitutive> Simulator<M> {
         }
     }
 
-    /// [`Self::backward`] with the tape's states, `mat` and the seeds all in one order.
+    /// [`Self::backward`] with the tape's states and `mat` in one order; `seed(k, state_k, g)`
+    /// adds the loss gradient at substep `k` into `g` (in that order).
     fn backward_in_order(
         &self,
         tape: &Tape,
         mat: &Material,
-        seed: impl FnMut(usize, &State) -> Option<StateGrad>,
+        seed: impl FnMut(usize, &State, &mut StateGrad) -> Result<(), MpmError>,
         opts: BackwardOptions,
     ) -> Result<Gradients, MpmError> {
         let n = tape.n_substeps;
         let np = tape.final_state.len();
         let mut seed = seed;
-        let g = seed(n, &tape.final_state).unwrap_or_else(|| StateGrad::zeros(np));
-        if g.len() != np {
-            return Err(MpmError::GradientMismatch(
-                "seed gradient length differs from the particle count",
-            ));
-        }
+        let mut g = StateGrad::zeros(np);
+        seed(n, &tape.final_state, &mut g)?;
         let start = n - opts.truncate.unwrap_or(n).min(n);
         let mut rev = Reverser {
             sim: self,
@@ -295,7 +299,9 @@ struct Reverser<'a, M: Constitutive, S> {
     plan: Schedule,
 }
 
-impl<M: Constitutive, S: FnMut(usize, &State) -> Option<StateGrad>> Reverser<'_, M, S> {
+impl<M: Constitutive, S: FnMut(usize, &State, &mut StateGrad) -> Result<(), MpmError>>
+    Reverser<'_, M, S>
+{
     /// Reverses substeps `lo..hi` (only those `≥ start`) from the checkpoint at `lo`.
     fn segment(&mut self, ck: &State, lo: usize, hi: usize) -> Result<(), MpmError> {
         debug_assert!(self.stack.is_empty());
@@ -406,14 +412,12 @@ impl<M: Constitutive, S: FnMut(usize, &State) -> Option<StateGrad>> Reverser<'_,
                 particle,
             });
         }
-        if let Some(extra) = (self.seed)(k, s) {
-            if extra.len() != self.g.len() {
-                return Err(MpmError::GradientMismatch(
-                    "seed gradient length differs from the particle count",
-                ));
-            }
-            self.g.add_assign(&extra);
-        }
+        (self.seed)(k, s, &mut self.g)?;
         Ok(())
     }
+}
+
+/// The error for a seed gradient whose length is not the particle count.
+fn seed_len_mismatch() -> MpmError {
+    MpmError::GradientMismatch("seed gradient length differs from the particle count")
 }

@@ -20,7 +20,7 @@ use crate::isa::{Isa, Lanes, WithLanes, any_non_finite};
 use crate::models::Constitutive;
 use crate::p2g::Node;
 use crate::scatter::scatter_with_slabs;
-use crate::sim::{Simulator, Work};
+use crate::sim::{Simulator, Work, chunks_or_empty};
 use crate::state::{FamilyGrad, Material, MaterialGrad, State, StateGrad};
 
 /// The z-weights of a particle's stencil rows used by both adjoint kernels, as splat vectors:
@@ -128,8 +128,17 @@ impl<M: Constitutive> WithLanes for ParticleAdjoint<'_, M> {
             );
             let f_tmp = model.predict(c, f, dt);
             let (mu, lam) = (mat.mu[p], mat.lam[p]);
-            let mg =
-                model.update_adjoint_given_stress(&f_tmp, c, mu, lam, dt, tau, &gf[i], &pg.tau);
+            let aux = if M::STRESS_AUX { w.aux[p] } else { 0.0 };
+            let mg = model.update_adjoint_given_stress(
+                &f_tmp,
+                c,
+                mu,
+                lam,
+                dt,
+                (tau, aux),
+                &gf[i],
+                &pg.tau,
+            );
             let (gc_pred, gf_new) = model.predict_adjoint(c, f, dt, &mg.f_tmp);
             *gx += pg.x;
             gv[i] = pg.v;
@@ -303,7 +312,14 @@ impl<M: Constitutive> Simulator<M> {
         // P2G, constitutive model and strain prediction, per particle.
         let model = &self.model;
         let g_nodes = &aw.g_nodes;
-        aw.family.resize(s.len(), FamilyGrad::default());
+        // Family gradients are stored only for models that have family scalars; the others
+        // get empty chunks (their gradient is checked to be zero).
+        let family = chunks_or_empty(
+            &mut aw.family,
+            s.len(),
+            PARTICLE_CHUNK,
+            M::HAS_FAMILY_PARAMS,
+        );
         let non_finite = (
             g.x.par_chunks_mut(PARTICLE_CHUNK),
             g.v.par_chunks_mut(PARTICLE_CHUNK),
@@ -313,7 +329,7 @@ impl<M: Constitutive> Simulator<M> {
             gmat.volume.par_chunks_mut(PARTICLE_CHUNK),
             gmat.mu.par_chunks_mut(PARTICLE_CHUNK),
             gmat.lam.par_chunks_mut(PARTICLE_CHUNK),
-            aw.family.par_chunks_mut(PARTICLE_CHUNK),
+            family,
         )
             .into_par_iter()
             .enumerate()

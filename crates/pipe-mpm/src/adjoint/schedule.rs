@@ -8,9 +8,10 @@
 //! [`Schedule`] tabulates the minimising `m` by dynamic programming.
 
 /// Snapshots (recomputed states) alive at once while a segment is reversed, besides the tape.
-/// Four keeps a 14-frame rollout under twice its frame checkpoints at 20k particles while
-/// costing 2.9 (k = 50) to 5.3 (k = 270) recomputed substeps per reversed substep.
-pub const SEGMENT_SNAPSHOTS: usize = 4;
+/// Five keep a 14-frame rollout under twice its frame checkpoints at 20k particles (1.95×)
+/// while costing 2.4 (k = 50) to 4.3 (k = 270) recomputed substeps per reversed substep (four:
+/// 2.9 to 5.3).
+pub const SEGMENT_SNAPSHOTS: usize = 5;
 
 /// Optimal split points `m(k, c)` for `k ≤ max_k` substeps and `1 ≤ c ≤ max_c` snapshots.
 #[derive(Debug, Clone)]

@@ -49,7 +49,7 @@ impl Constitutive for FixedCorotated {
         mu: f64,
         lam: f64,
         _dt: f64,
-        tau: &DMat3,
+        (tau, _): (&DMat3, f64),
         g_f: &DMat3,
         g_tau: &DMat3,
     ) -> ModelGrad {

@@ -67,6 +67,26 @@ pub trait Constitutive: Send + Sync + std::fmt::Debug + Clone {
     /// Return mapping and stress: `(F_new, τ)` from `F_tmp`, the previous `C`, μ, λ (Pa), dt (s).
     fn update(&self, f_tmp: &DMat3, c: &DMat3, mu: f64, lam: f64, dt: f64) -> (DMat3, DMat3);
 
+    /// Whether [`Self::update_with_aux`] returns a scalar the adjoint reuses; the stress pass
+    /// then keeps it per particle for the backward pass.
+    const STRESS_AUX: bool = false;
+
+    /// [`Self::update`] plus a scalar of its work that [`Self::update_adjoint_given_stress`]
+    /// needs again (neo-Hookean: `ln J`), so the backward pass need not recompute it; 0 for
+    /// models without one ([`Self::STRESS_AUX`] false).
+    #[inline(always)]
+    fn update_with_aux(
+        &self,
+        f_tmp: &DMat3,
+        c: &DMat3,
+        mu: f64,
+        lam: f64,
+        dt: f64,
+    ) -> (DMat3, DMat3, f64) {
+        let (f, tau) = self.update(f_tmp, c, mu, lam, dt);
+        (f, tau, 0.0)
+    }
+
     /// Adjoint of [`Self::update`] given `∂L/∂F_new` and `∂L/∂τ`.
     #[allow(clippy::too_many_arguments)]
     fn update_adjoint(
@@ -80,9 +100,10 @@ pub trait Constitutive: Send + Sync + std::fmt::Debug + Clone {
         g_tau: &DMat3,
     ) -> ModelGrad;
 
-    /// [`Self::update_adjoint`] given also the stress `tau` (Pa) that [`Self::update`] returned
-    /// for this `f_tmp`, as the backward pass has it: a model may recover intermediates from it
-    /// instead of recomputing them. The default ignores `tau`.
+    /// [`Self::update_adjoint`] given also the stress `tau` (Pa) and the scalar `aux` that
+    /// [`Self::update_with_aux`] returned for this `f_tmp`, as the backward pass has them: a
+    /// model may recover intermediates from them instead of recomputing them. The default
+    /// ignores both.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn update_adjoint_given_stress(
@@ -92,11 +113,11 @@ pub trait Constitutive: Send + Sync + std::fmt::Debug + Clone {
         mu: f64,
         lam: f64,
         dt: f64,
-        tau: &DMat3,
+        (tau, aux): (&DMat3, f64),
         g_f: &DMat3,
         g_tau: &DMat3,
     ) -> ModelGrad {
-        let _ = tau;
+        let _ = (tau, aux);
         self.update_adjoint(f_tmp, c, mu, lam, dt, g_f, g_tau)
     }
 
