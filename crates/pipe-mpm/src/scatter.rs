@@ -2,14 +2,14 @@
 //!
 //! Particles are binned by x-slabs: runs of whole cells, by the x index of their stencil base.
 //! A particle of a slab starting at cell `a` and ending before cell `b` writes only x-layers
-//! `[a, b + 2)`, so two slabs with at least [`MIN_SLAB`] = 2 cells between them never write the
+//! `[a, b + 2)`, so two slabs with at least `MIN_SLAB` = 2 cells between them never write the
 //! same node. Even slabs are processed in parallel first (the grid split at the even slabs'
 //! first layers), then odd slabs (split at the odd ones').
 //!
-//! The slabs hold equal shares of the particles ([`slab_cuts`]): `4k` slabs of at least two
-//! cells, as many as the particles' x-extent allows (up to [`MAX_SLABS`]), so each colour is
+//! The slabs hold equal shares of the particles (`slab_cuts`): `4k` slabs of at least two
+//! cells, as many as the particles' x-extent allows (up to `MAX_SLABS`), so each colour is
 //! `2k` equal tasks and two threads (or four, when k is even) finish a colour together. Narrow
-//! clouds fall back to slabs of [`FALLBACK_SLAB`] cells. The cuts depend only on the positions,
+//! clouds fall back to slabs of `FALLBACK_SLAB` cells. The cuts depend only on the positions,
 //! and inside a slab particles run in ascending index order, so every node receives its
 //! contributions in one fixed order whatever the thread count: results are bit-identical.
 
@@ -25,7 +25,7 @@ const MIN_SLAB: usize = 2;
 /// Most slabs per rebuild (a multiple of 4).
 const MAX_SLABS: usize = 32;
 
-/// Slab width (cells) when the particles are too narrow in x for 4 slabs of [`MIN_SLAB`].
+/// Slab width (cells) when the particles are too narrow in x for 4 slabs of `MIN_SLAB`.
 const FALLBACK_SLAB: usize = 3;
 
 /// Particles per parallel task of [`Bins::rebuild`].
@@ -60,7 +60,7 @@ impl Bins {
     }
 
     /// Re-bins particles at positions `x`, reusing the buffers: a stable counting sort run by
-    /// tasks of [`BIN_CHUNK`] particles. Each task counts its particles per x cell; the cuts
+    /// tasks of `BIN_CHUNK` particles. Each task counts its particles per x cell; the cuts
     /// come from the summed counts; the slab ranges of `order` are then cut into one piece per
     /// task (tasks in particle order), so every task writes its own pieces and the result is
     /// the serial sort's, whatever the thread count.
@@ -190,8 +190,8 @@ impl Bins {
 }
 
 /// Slab boundaries (cells; `0`, the cuts, `nx`) for `n` particles counted per x cell: the
-/// most slabs, a multiple of 4 up to [`MAX_SLABS`], whose equal-count cuts leave every slab
-/// at least [`MIN_SLAB`] cells wide; slabs of [`FALLBACK_SLAB`] cells when not even 4 fit.
+/// most slabs, a multiple of 4 up to `MAX_SLABS`, whose equal-count cuts leave every slab
+/// at least `MIN_SLAB` cells wide; slabs of `FALLBACK_SLAB` cells when not even 4 fit.
 pub(crate) fn slab_cuts(per_cell: &[usize], n: usize) -> Vec<usize> {
     let nx = per_cell.len();
     let mut k = (nx / MIN_SLAB).min(MAX_SLABS) / 4 * 4;
@@ -209,7 +209,7 @@ pub(crate) fn slab_cuts(per_cell: &[usize], n: usize) -> Vec<usize> {
 
 /// Boundaries of `k` slabs: cut `i` is the cell boundary whose count of particles below is
 /// nearest `i·n/k` (the upper one on a tie); `None` if a slab would be narrower than
-/// [`MIN_SLAB`].
+/// `MIN_SLAB`.
 fn equal_count_cuts(per_cell: &[usize], n: usize, k: usize) -> Option<Vec<usize>> {
     let nx = per_cell.len();
     // below[b] = particles in cells < b.
