@@ -17,7 +17,9 @@
 //! * `MPM_ROLLOUT=run|tape|tape+bwd`: one differentiable rollout of `MPM_FRAMES` (14) frames of
 //!   `MPM_SUBSTEPS_PER_FRAME` (50) substeps, N = 20k, G = 32, nh, checkpoint per frame; for
 //!   peak-memory measurements with `/usr/bin/time -v` (`run` = plain forward, no tape);
-//!   `MPM_SNAPSHOTS` sets [`BackwardOptions::snapshots`] (default 4).
+//!   `MPM_SNAPSHOTS` sets [`BackwardOptions::snapshots`] (default
+//!   [`pipe_mpm::adjoint::SEGMENT_SNAPSHOTS`]); the loss (mean y at every frame) is seeded in
+//!   place ([`Simulator::backward_into`]).
 //! * `MPM_SWEEP_THREADS` (default 2): threads of the `sweep_fcr` particle-count sweep.
 
 use divan::Bencher;
@@ -150,12 +152,17 @@ fn rollout(mode: &str) {
                 .forward_tape(&mut s, &mat, 0.0, frames * spf, spf)
                 .unwrap();
             if mode == "tape+bwd" {
-                let mut seed = StateGrad::zeros(n);
-                seed.x.iter_mut().for_each(|g| g.y = 1.0 / n as f64);
-                sim.backward(
+                // Loss: mean y at every frame, added in place (no gradient state per seed).
+                let d_mean_y = DVec3::new(0.0, 1.0 / n as f64, 0.0);
+                sim.backward_into(
                     &tape,
                     &mat,
-                    |k, _| (k % spf == 0 && k > 0).then(|| seed.clone()),
+                    |k, _, g| {
+                        if k % spf == 0 && k > 0 {
+                            (0..n).for_each(|p| g.add_x(p, d_mean_y));
+                        }
+                        Ok(())
+                    },
                     BackwardOptions {
                         snapshots: env_usize("MPM_SNAPSHOTS", pipe_mpm::adjoint::SEGMENT_SNAPSHOTS),
                         ..Default::default()

@@ -64,7 +64,7 @@ mod state;
 pub mod svd;
 pub mod timestep;
 
-pub use adjoint::{BackwardOptions, Gradients, SeedState, Tape};
+pub use adjoint::{BackwardOptions, Gradients, SeedGrad, SeedState, Tape};
 pub use boundary::{Boundaries, BoundaryKind, Collider};
 pub use error::MpmError;
 pub use family::{Family, ModelVisitor};

@@ -61,6 +61,12 @@ impl Order {
         self.order[i] as usize
     }
 
+    /// The slot of the caller's particle `p`.
+    #[inline]
+    pub(crate) fn slot(&self, p: usize) -> usize {
+        self.rank[p] as usize
+    }
+
     /// `src` (caller's order) in slot order.
     pub(crate) fn gather<T: Copy>(&self, src: &[T]) -> Vec<T> {
         self.order.iter().map(|&p| src[p as usize]).collect()

@@ -10,6 +10,8 @@
 
 use std::borrow::Cow;
 
+use glam::{DMat3, DVec3};
+
 use super::AdjointWork;
 use super::schedule::{SEGMENT_SNAPSHOTS, Schedule};
 use crate::error::MpmError;
@@ -69,6 +71,74 @@ impl SeedState<'_> {
             None => Cow::Borrowed(self.slots),
             Some(o) => Cow::Owned(o.unsort_state(self.slots)),
         }
+    }
+}
+
+/// The running gradient `∂L/∂state_k` at a seed's substep, into which the seed of
+/// [`Simulator::backward_into`] adds its loss terms, indexed in the caller's particle order
+/// (translated to the run's order when it reordered the particles). Adding in place needs no
+/// gradient state of the caller's: a loss on positions alone adds `∂L/∂x` particle by
+/// particle.
+#[derive(Debug)]
+pub struct SeedGrad<'a> {
+    g: &'a mut StateGrad,
+    order: Option<&'a Order>,
+}
+
+impl SeedGrad<'_> {
+    /// Number of particles.
+    pub fn len(&self) -> usize {
+        self.g.len()
+    }
+
+    /// `true` when there are no particles.
+    pub fn is_empty(&self) -> bool {
+        self.g.is_empty()
+    }
+
+    /// The run's slot of the caller's particle `p` (panics if `p ≥ len`, as indexing does).
+    fn slot(&self, p: usize) -> usize {
+        assert!(p < self.len(), "particle {p} of {}", self.len());
+        self.order.map_or(p, |o| o.slot(p))
+    }
+
+    /// Adds `g` (per m) to `∂L/∂x` of particle `p`.
+    pub fn add_x(&mut self, p: usize, g: DVec3) {
+        let i = self.slot(p);
+        self.g.x[i] += g;
+    }
+
+    /// Adds `g` (s/m) to `∂L/∂v` of particle `p`.
+    pub fn add_v(&mut self, p: usize, g: DVec3) {
+        let i = self.slot(p);
+        self.g.v[i] += g;
+    }
+
+    /// Adds `g` (s) to `∂L/∂C` of particle `p`.
+    pub fn add_c(&mut self, p: usize, g: DMat3) {
+        let i = self.slot(p);
+        self.g.c[i] += g;
+    }
+
+    /// Adds `g` to `∂L/∂F` of particle `p`.
+    pub fn add_f(&mut self, p: usize, g: DMat3) {
+        let i = self.slot(p);
+        self.g.f[i] += g;
+    }
+
+    /// Adds a whole gradient in the caller's order; [`MpmError::GradientMismatch`] unless each
+    /// of its arrays holds one entry per particle.
+    pub fn add(&mut self, g: &StateGrad) -> Result<(), MpmError> {
+        if !g.has_len(self.len()) {
+            return Err(MpmError::GradientMismatch(
+                "seed gradient length differs from the particle count",
+            ));
+        }
+        match self.order {
+            None => self.g.add_assign(g),
+            Some(o) => o.add_sorted_grad(g, self.g),
+        }
+        Ok(())
     }
 }
 
@@ -148,22 +218,41 @@ impl<M: Constitutive> Simulator<M> {
     ///
     /// Each segment is reversed with at most [`BackwardOptions::snapshots`] recomputed states
     /// alive besides the tape (binomial schedule, see `adjoint::schedule`).
+    /// [`Self::backward_into`] takes the seeds in place, without a gradient state per seed.
     pub fn backward(
         &self,
         tape: &Tape,
         mat: &Material,
-        seed: impl FnMut(usize, SeedState<'_>) -> Option<StateGrad> + Send,
+        mut seed: impl FnMut(usize, SeedState<'_>) -> Option<StateGrad> + Send,
+        opts: BackwardOptions,
+    ) -> Result<Gradients, MpmError> {
+        self.backward_into(
+            tape,
+            mat,
+            |k, s, g| seed(k, s).map_or(Ok(()), |extra| g.add(&extra)),
+            opts,
+        )
+    }
+
+    /// [`Self::backward`] with seeds that add their terms into the running gradient:
+    /// `seed(k, state_k, g)` adds `∂L/∂state_k` into `g` ([`SeedGrad`], caller's particle
+    /// order); an error it returns stops the pass.
+    pub fn backward_into(
+        &self,
+        tape: &Tape,
+        mat: &Material,
+        seed: impl FnMut(usize, SeedState<'_>, &mut SeedGrad<'_>) -> Result<(), MpmError> + Send,
         opts: BackwardOptions,
     ) -> Result<Gradients, MpmError> {
         crate::sim::on_worker(|| self.backward_on_worker(tape, mat, seed, opts))
     }
 
-    /// [`Self::backward`] on the calling thread.
+    /// [`Self::backward_into`] on the calling thread.
     fn backward_on_worker(
         &self,
         tape: &Tape,
         mat: &Material,
-        mut seed: impl FnMut(usize, SeedState<'_>) -> Option<StateGrad>,
+        mut seed: impl FnMut(usize, SeedState<'_>, &mut SeedGrad<'_>) -> Result<(), MpmError>,
         opts: BackwardOptions,
     ) -> Result<Gradients, MpmError> {
         if opts.snapshots == 0 {
@@ -173,43 +262,19 @@ impl<M: Constitutive> Simulator<M> {
                 reason: "must be >= 1",
             });
         }
-        let np = tape.final_state.len();
-        let Some(o) = &tape.order else {
-            let plain = |k: usize, s: &State, g: &mut StateGrad| {
-                let slots = SeedState {
-                    slots: s,
-                    order: None,
-                };
-                match seed(k, slots) {
-                    Some(extra) if extra.has_len(np) => {
-                        g.add_assign(&extra);
-                        Ok(())
-                    }
-                    Some(_) => Err(seed_len_mismatch()),
-                    None => Ok(()),
-                }
-            };
-            return self.backward_in_order(tape, mat, plain, opts);
+        let order = tape.order.as_ref();
+        // The tape is in slot order: the reverser runs there, and each seed sees the state
+        // and adds its gradient through the permutation (caller's order).
+        let in_slots = |k: usize, s: &State, g: &mut StateGrad| {
+            let view = SeedState { slots: s, order };
+            seed(k, view, &mut SeedGrad { g, order })
         };
-        // The tape is in slot order: reverse there, adding each seed (caller's order) into the
-        // slot-order gradient through the permutation (no sorted copy of the seed).
-        let sorted_seed = |k: usize, s: &State, g: &mut StateGrad| {
-            let view = SeedState {
-                slots: s,
-                order: Some(o),
-            };
-            match seed(k, view) {
-                Some(extra) if extra.has_len(np) => {
-                    o.add_sorted_grad(&extra, g);
-                    Ok(())
-                }
-                Some(_) => Err(seed_len_mismatch()),
-                None => Ok(()),
-            }
+        let Some(o) = order else {
+            return self.backward_in_order(tape, mat, in_slots, opts);
         };
-        let grads =
-            self.sorted(o)
-                .backward_in_order(tape, &o.sort_material(mat), sorted_seed, opts);
+        let grads = self
+            .sorted(o)
+            .backward_in_order(tape, &o.sort_material(mat), in_slots, opts);
         match grads {
             Ok(g) => Ok(Gradients {
                 state: o.unsort_grad(&g.state),
@@ -415,9 +480,4 @@ impl<M: Constitutive, S: FnMut(usize, &State, &mut StateGrad) -> Result<(), MpmE
         (self.seed)(k, s, &mut self.g)?;
         Ok(())
     }
-}
-
-/// The error for a seed gradient whose length is not the particle count.
-fn seed_len_mismatch() -> MpmError {
-    MpmError::GradientMismatch("seed gradient length differs from the particle count")
 }

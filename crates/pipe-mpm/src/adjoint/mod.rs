@@ -7,7 +7,7 @@ mod grid_update;
 mod p2g;
 mod schedule;
 
-pub use checkpoint::{BackwardOptions, Gradients, SeedState, Tape};
+pub use checkpoint::{BackwardOptions, Gradients, SeedGrad, SeedState, Tape};
 pub use schedule::SEGMENT_SNAPSHOTS;
 
 use glam::{DMat3, DVec3};

@@ -8,10 +8,11 @@
 //! [`Schedule`] tabulates the minimising `m` by dynamic programming.
 
 /// Snapshots (recomputed states) alive at once while a segment is reversed, besides the tape.
-/// Five keep a 14-frame rollout under twice its frame checkpoints at 20k particles (1.95×)
-/// while costing 2.4 (k = 50) to 4.3 (k = 270) recomputed substeps per reversed substep (four:
-/// 2.9 to 5.3).
-pub const SEGMENT_SNAPSHOTS: usize = 5;
+/// Six keep a 14-frame rollout of 20k particles under twice its frame checkpoints (1.87× with
+/// seeds added in place, `Simulator::backward_into`; about 1.95× with a fresh gradient state
+/// returned per seed) while costing 2.3 (k = 50) to 3.8 (k = 270) recomputed substeps per
+/// reversed substep (four: 2.9 to 5.3).
+pub const SEGMENT_SNAPSHOTS: usize = 6;
 
 /// Optimal split points `m(k, c)` for `k ≤ max_k` substeps and `1 ≤ c ≤ max_c` snapshots.
 #[derive(Debug, Clone)]
