@@ -1,0 +1,238 @@
+//! CLI-level MPM benchmark at the anchor workloads (`/work/shared/anchors/README.md`): the
+//! `pipe simulate` command on the anchors' cube (domain [0,1]³, dx = 1/G, dt = 1e-4 s, E = 1e3
+//! Pa, ν = 0.2, ρ = 1 kg/m³, gravity, 8 particles per cell in a cube placed as the anchors
+//! place it, uniform random positions in random order, at rest), for fixed corotated
+//! (`elastic_fcr`) and neo-Hookean (`elastic`) at 20k particles / G = 32 and 100k / G = 64,
+//! with 1 and 2 threads. Each run writes its inputs (a PLY and a simulation file) to a
+//! temporary directory, runs the `pipe` binary on them and reports the whole command's time per
+//! substep from its `summary.json` (reading, setup, the frame PLYs and `particles.arrow`
+//! included), one JSON line per run.
+//!
+//! `cargo bench -p pipe --bench simulate_anchor`
+//!
+//! * `PIPE_BENCH_CASES=fcr_20k,nh_100k` runs some cases; `PIPE_BENCH_THREADS=2` some thread
+//!   counts.
+//! * `ANCHORS_PY=/tmp/anchors-venv/bin/python` (with `ANCHORS_DIR`, default
+//!   `/work/shared/anchors`) also runs the anchors' Taichi script on the same workload right
+//!   after each of ours (same thread count), and Warp's after our 1-thread run, through the
+//!   anchors' `bench_runner.py`, printing their JSON lines: the side-by-side comparison in one
+//!   run.
+
+use std::path::Path;
+use std::process::Command;
+
+use pipe::io::ply::write_points;
+
+/// One workload: material family, particle count, grid size, frames × substeps per frame, and
+/// the anchor scripts' `--steps` for the same workload (Taichi, Warp).
+struct Case {
+    name: &'static str,
+    family: &'static str,
+    taichi_material: &'static str,
+    n: usize,
+    g: usize,
+    frames: u32,
+    substeps_per_frame: u32,
+    taichi_steps: u32,
+    warp_steps: u32,
+}
+
+const CASES: [Case; 4] = [
+    Case {
+        name: "fcr_20k",
+        family: "elastic_fcr",
+        taichi_material: "fcr",
+        n: 20_000,
+        g: 32,
+        frames: 11,
+        substeps_per_frame: 50,
+        taichi_steps: 100,
+        warp_steps: 50,
+    },
+    Case {
+        name: "nh_20k",
+        family: "elastic",
+        taichi_material: "nh",
+        n: 20_000,
+        g: 32,
+        frames: 11,
+        substeps_per_frame: 50,
+        taichi_steps: 100,
+        warp_steps: 50,
+    },
+    Case {
+        name: "fcr_100k",
+        family: "elastic_fcr",
+        taichi_material: "fcr",
+        n: 100_000,
+        g: 64,
+        frames: 11,
+        substeps_per_frame: 20,
+        taichi_steps: 20,
+        warp_steps: 10,
+    },
+    Case {
+        name: "nh_100k",
+        family: "elastic",
+        taichi_material: "nh",
+        n: 100_000,
+        g: 64,
+        frames: 11,
+        substeps_per_frame: 20,
+        taichi_steps: 20,
+        warp_steps: 10,
+    },
+];
+
+/// Substep (s) of the anchors.
+const DT: f64 = 1e-4;
+
+fn main() {
+    let cases = std::env::var("PIPE_BENCH_CASES").ok();
+    let threads: Vec<usize> = std::env::var("PIPE_BENCH_THREADS")
+        .ok()
+        .map(|t| t.split(',').filter_map(|v| v.trim().parse().ok()).collect())
+        .unwrap_or_else(|| vec![1, 2]);
+    let anchors_py = std::env::var("ANCHORS_PY").ok();
+    let anchors_dir =
+        std::env::var("ANCHORS_DIR").unwrap_or_else(|_| "/work/shared/anchors".into());
+    for case in &CASES {
+        if cases
+            .as_deref()
+            .is_some_and(|c| !c.split(',').any(|n| n.trim() == case.name))
+        {
+            continue;
+        }
+        let dir = tempfile::tempdir().expect("temporary directory");
+        write_inputs(case, dir.path());
+        for &t in &threads {
+            run_ours(case, dir.path(), t);
+            if let Some(py) = &anchors_py {
+                let steps = case.taichi_steps.to_string();
+                let threads = t.to_string();
+                run_anchor(
+                    case,
+                    py,
+                    &anchors_dir,
+                    "mpm_taichi.py",
+                    &steps,
+                    Some(&threads),
+                );
+                // Warp's CPU backend is single-threaded: once, next to our 1-thread run.
+                if t == 1 {
+                    let steps = case.warp_steps.to_string();
+                    run_anchor(case, py, &anchors_dir, "mpm_warp.py", &steps, None);
+                }
+            }
+        }
+    }
+}
+
+/// The anchors' cube (`particles.ply`) and the simulation file (`sim.yaml`) in `dir`.
+fn write_inputs(case: &Case, dir: &Path) {
+    let dx = 1.0 / case.g as f64;
+    let side = ((case.n as f64 / 8.0).cbrt() * dx).min(1.0 - 10.0 * dx);
+    let lo = [
+        0.5 - side / 2.0,
+        0.5 - side / 2.0 + 0.1 * (1.0 - side),
+        0.5 - side / 2.0,
+    ];
+    let mut seed = 0x2545_F491_4F6C_DD1Du64;
+    let mut uniform = move || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let positions: Vec<[f32; 3]> = (0..case.n)
+        .map(|_| std::array::from_fn(|a| (lo[a] + uniform() * side) as f32))
+        .collect();
+    write_points(&dir.join("particles.ply"), &positions, None).expect("particles.ply");
+    let sim = format!(
+        "material:\n  family: {family}\n  youngs_modulus: 1.0e3\n  poisson_ratio: 0.2\n  \
+         density: 1.0\ninitial_velocity: [0, 0, 0]\nparticle_volume: {volume:e}\n\
+         gravity: [0, -9.8, 0]\nframe_dt: {frame_dt:e}\nsubsteps: {substeps}\n\
+         grid_dx: {dx:e}\ndomain: {{min: [0, 0, 0], max: [1, 1, 1]}}\n",
+        family = case.family,
+        volume = dx * dx * dx / 8.0,
+        frame_dt = DT * f64::from(case.substeps_per_frame),
+        substeps = case.substeps_per_frame,
+    );
+    std::fs::write(dir.join("sim.yaml"), sim).expect("sim.yaml");
+}
+
+/// Runs `pipe --threads t simulate` and prints its time per substep.
+fn run_ours(case: &Case, dir: &Path, threads: usize) {
+    let out = dir.join(format!("out-{threads}"));
+    let started = std::time::Instant::now();
+    let status = Command::new(env!("CARGO_BIN_EXE_pipe"))
+        .arg("--threads")
+        .arg(threads.to_string())
+        .arg("simulate")
+        .arg(dir.join("particles.ply"))
+        .arg("--material")
+        .arg(dir.join("sim.yaml"))
+        .arg("--frames")
+        .arg(case.frames.to_string())
+        .arg("--out")
+        .arg(&out)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .expect("run pipe");
+    let process_s = started.elapsed().as_secs_f64();
+    assert!(status.success(), "pipe simulate failed for {}", case.name);
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).expect("summary.json"))
+            .expect("summary.json is JSON");
+    let wall = summary["wall_time_s"].as_f64().expect("wall_time_s");
+    let substeps = summary["substeps_total"].as_u64().expect("substeps_total");
+    let per_substep_ms = wall * 1e3 / substeps as f64;
+    println!(
+        "{{\"who\":\"pipe simulate\",\"case\":\"{}\",\"N\":{},\"G\":{},\"threads\":{threads},\
+         \"substeps\":{substeps},\"wall_s\":{wall:.4},\"process_s\":{process_s:.4},\
+         \"ms_per_substep\":{per_substep_ms:.4},\"Mpart_substeps_per_s\":{:.3},\
+         \"particles_out\":{}}}",
+        case.name,
+        case.n,
+        case.g,
+        case.n as f64 / per_substep_ms / 1e3,
+        summary["particles_out"],
+    );
+}
+
+/// Runs one of the anchors' scripts (through `bench_runner.py`, which waits for an idle machine)
+/// on the same workload and prints its JSON line.
+fn run_anchor(
+    case: &Case,
+    py: &str,
+    anchors_dir: &str,
+    script: &str,
+    steps: &str,
+    threads: Option<&str>,
+) {
+    let mut cmd = Command::new(py);
+    cmd.current_dir(anchors_dir)
+        .args(["bench_runner.py", "/dev/null", "--", py, script])
+        .args(["--material", case.taichi_material])
+        .args(["--n", &case.n.to_string()])
+        .args(["--grid", &case.g.to_string()])
+        .args(["--steps", steps])
+        .args(["--repeats", "3"]);
+    if let Some(t) = threads {
+        cmd.args(["--threads", t]);
+    }
+    let out = cmd.output().expect("run an anchor script");
+    let text = String::from_utf8_lossy(&out.stdout);
+    match text.lines().rev().find(|l| l.trim_start().starts_with('{')) {
+        Some(line) => println!("{}", line.trim()),
+        None => println!(
+            "{{\"who\":\"{script}\",\"case\":\"{}\",\"error\":{:?}}}",
+            case.name,
+            String::from_utf8_lossy(&out.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
+        ),
+    }
+}
