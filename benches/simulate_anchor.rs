@@ -21,6 +21,10 @@
 use std::path::Path;
 use std::process::Command;
 
+#[path = "../crates/pipe-mpm/benches/anchor_cube.rs"]
+mod anchor_cube;
+
+use anchor_cube::anchor_cube;
 use pipe::io::ply::write_points;
 
 /// One workload: material family, particle count, grid size, frames × substeps per frame, and
@@ -131,22 +135,8 @@ fn main() {
 /// The anchors' cube (`particles.ply`) and the simulation file (`sim.yaml`) in `dir`.
 fn write_inputs(case: &Case, dir: &Path) {
     let dx = 1.0 / case.g as f64;
-    let side = ((case.n as f64 / 8.0).cbrt() * dx).min(1.0 - 10.0 * dx);
-    let lo = [
-        0.5 - side / 2.0,
-        0.5 - side / 2.0 + 0.1 * (1.0 - side),
-        0.5 - side / 2.0,
-    ];
-    let mut seed = 0x2545_F491_4F6C_DD1Du64;
-    let mut uniform = move || {
-        seed ^= seed << 13;
-        seed ^= seed >> 7;
-        seed ^= seed << 17;
-        (seed >> 11) as f64 / (1u64 << 53) as f64
-    };
-    let positions: Vec<[f32; 3]> = (0..case.n)
-        .map(|_| std::array::from_fn(|a| (lo[a] + uniform() * side) as f32))
-        .collect();
+    let (x, volume) = anchor_cube(case.n, case.g);
+    let positions: Vec<[f32; 3]> = x.iter().map(|p| p.as_vec3().to_array()).collect();
     write_points(&dir.join("particles.ply"), &positions, None).expect("particles.ply");
     let sim = format!(
         "material:\n  family: {family}\n  youngs_modulus: 1.0e3\n  poisson_ratio: 0.2\n  \
@@ -154,7 +144,6 @@ fn write_inputs(case: &Case, dir: &Path) {
          gravity: [0, -9.8, 0]\nframe_dt: {frame_dt:e}\nsubsteps: {substeps}\n\
          grid_dx: {dx:e}\ndomain: {{min: [0, 0, 0], max: [1, 1, 1]}}\n",
         family = case.family,
-        volume = dx * dx * dx / 8.0,
         frame_dt = DT * f64::from(case.substeps_per_frame),
         substeps = case.substeps_per_frame,
     );

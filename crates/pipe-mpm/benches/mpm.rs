@@ -22,6 +22,10 @@
 //!   place ([`Simulator::backward_into`]).
 //! * `MPM_SWEEP_THREADS` (default 2): threads of the `sweep_fcr` particle-count sweep.
 
+#[path = "anchor_cube.rs"]
+mod anchor_cube;
+
+use anchor_cube::anchor_cube;
 use divan::Bencher;
 use divan::counter::ItemsCount;
 use glam::DVec3;
@@ -183,22 +187,7 @@ fn rollout(mode: &str) {
 
 fn scene<M: Constitutive>(model: M, n: usize, g: usize) -> (Simulator<M>, State, Material) {
     let dx = 1.0 / g as f64;
-    let side = ((n as f64 / 8.0).cbrt() * dx).min(1.0 - 10.0 * dx);
-    let mut seed = 0x2545F4914F6CDD1Du64;
-    let mut r = move || {
-        seed ^= seed << 13;
-        seed ^= seed >> 7;
-        seed ^= seed << 17;
-        (seed >> 11) as f64 / (1u64 << 53) as f64
-    };
-    let lo = DVec3::new(
-        0.5 - side / 2.0,
-        0.5 - side / 2.0 + 0.1 * (1.0 - side),
-        0.5 - side / 2.0,
-    );
-    let mut x: Vec<DVec3> = (0..n)
-        .map(|_| lo + DVec3::new(r(), r(), r()) * side)
-        .collect();
+    let (mut x, vol) = anchor_cube(n, g);
     if std::env::var("MPM_SORTED").is_ok() {
         let key = |p: &DVec3| {
             let c = (*p * g as f64).floor();
@@ -206,7 +195,6 @@ fn scene<M: Constitutive>(model: M, n: usize, g: usize) -> (Simulator<M>, State,
         };
         x.sort_by_key(key);
     }
-    let vol = side * side * side / n as f64; // = dx³/8 unless the cube was clamped
     let mat = Material::from_e_nu(n, vol, 1.0, 1e3, 0.2).unwrap();
     let mut cfg = SimConfig::new(
         Aabb::new(DVec3::splat(3.0 * dx), DVec3::splat(1.0 - 3.0 * dx)),

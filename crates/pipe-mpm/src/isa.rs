@@ -107,6 +107,11 @@ pub(crate) trait Lanes: Copy {
     fn load(self, a: [f64; 4]) -> Self::V;
     /// The lanes of a vector.
     fn store(self, v: Self::V) -> [f64; 4];
+    /// `[v.x, v.y, v.z, w]`: a 3-vector with a fourth lane (0 to pad, or a node's mass).
+    #[inline(always)]
+    fn load3(self, v: glam::DVec3, w: f64) -> Self::V {
+        self.load([v.x, v.y, v.z, w])
+    }
     /// `x` in every lane.
     fn splat(self, x: f64) -> Self::V;
     /// `a b + c`, fused.

@@ -148,15 +148,14 @@ fn scatter_particle<L: Lanes>(
 ) {
     let st = grid.stencil_with(l, x);
     let d = st.offsets(grid.dx);
-    let lanes = |v: DVec3, w: f64| l.load([v.x, v.y, v.z, w]);
     let (a0, a1, a2) = (
-        lanes(a.x_axis, 0.0),
-        lanes(a.y_axis, 0.0),
-        lanes(a.z_axis, 0.0),
+        l.load3(a.x_axis, 0.0),
+        l.load3(a.y_axis, 0.0),
+        l.load3(a.z_axis, 0.0),
     );
     let wz: [L::V; 3] = std::array::from_fn(|k| l.splat(st.w[k].z));
     let a2k: [L::V; 3] = std::array::from_fn(|k| l.mul(a2, l.splat(st.w[k].z * d[k].z)));
-    let mom4 = lanes(mom, m);
+    let mom4 = l.load3(mom, m);
     for i in 0..3 {
         let q_x = l.fma(a0, l.splat(d[i].x), mom4);
         for (j, (dj, wj)) in d.iter().zip(st.w).enumerate() {

@@ -275,12 +275,11 @@ where
     T: Send,
     F: Fn(&[u32], &mut [T], usize) + Sync,
 {
-    debug_assert_eq!(out.len(), grid.len());
-    for parity in 0..2 {
-        bins.colour(parity, grid.layer(), out)
-            .into_par_iter()
-            .for_each(|(s, first, piece)| f(bins.slab(s), piece, first));
-    }
+    // No per-particle output: a zero-sized one (no allocation).
+    let mut none = vec![(); bins.order.len()];
+    scatter_with_slabs(grid, bins, out, &mut none, |ps, _, chunk, first| {
+        f(ps, chunk, first)
+    });
 }
 
 /// [`scatter_slabs`] that also hands `f` the slab's entries of `per`, an output buffer in bin

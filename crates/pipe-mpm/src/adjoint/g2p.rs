@@ -99,12 +99,11 @@ pub(crate) fn g2p_adjoint_particle<L: Lanes>(
     let p = st.offsets(grid.dx);
     let gcd = *gc * d_inv;
     let zw = ZWeights::new(l, &st, &p);
-    let lanes3 = |v: DVec3| l.load([v.x, v.y, v.z, 0.0]);
     let (gvl, gcx, gcy, gz) = (
-        lanes3(gv),
-        lanes3(gcd.x_axis),
-        lanes3(gcd.y_axis),
-        lanes3(gcd.z_axis),
+        l.load3(gv, 0.0),
+        l.load3(gcd.x_axis, 0.0),
+        l.load3(gcd.y_axis, 0.0),
+        l.load3(gcd.z_axis, 0.0),
     );
     // Node k of a row gets w_xy (wz_k y + wz_k pz_k ȳ_z); the second term is fixed per particle.
     let wz: [L::V; 3] = std::array::from_fn(|k| l.splat(st.w[k].z));

@@ -175,7 +175,7 @@ pub(crate) struct AdjointWork {
     /// Nodes of `g_vgrid` the last substep wrote (zero elsewhere).
     g_active: NodeBox,
     g_nodes: Vec<Node>,
-    /// `(x̄, v̄)` after the G2P adjoint, in bin order.
+    /// `x̄` after the G2P adjoint, in bin order.
     g2p: Vec<DVec3>,
     family: Vec<FamilyGrad>,
 }
@@ -199,11 +199,7 @@ impl<M: Constitutive> Simulator<M> {
                 position: s.x[index].to_array(),
             });
         }
-        if g_next.len() != s.len()
-            || g_next.v.len() != s.len()
-            || g_next.c.len() != s.len()
-            || g_next.f.len() != s.len()
-        {
+        if !g_next.has_len(s.len()) {
             return Err(MpmError::GradientMismatch(
                 "gradient length differs from the particle count",
             ));

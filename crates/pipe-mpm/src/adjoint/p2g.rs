@@ -72,9 +72,12 @@ pub(crate) fn p2g_adjoint_particle<L: Lanes>(l: L, inp: &P2gAdjoint<'_>) -> P2gG
     let mom = v * mass + extra;
     let p = st.offsets(grid.dx);
     let zw = ZWeights::new(l, &st, &p);
-    let lanes3 = |v: DVec3| l.load([v.x, v.y, v.z, 0.0]);
-    let (ax, ay, az) = (lanes3(a.x_axis), lanes3(a.y_axis), lanes3(a.z_axis));
-    let mom4 = l.load([mom.x, mom.y, mom.z, mass]);
+    let (ax, ay, az) = (
+        l.load3(a.x_axis, 0.0),
+        l.load3(a.y_axis, 0.0),
+        l.load3(a.z_axis, 0.0),
+    );
+    let mom4 = l.load3(mom, mass);
     let zero = l.splat(0.0);
     let (mut ga0, mut ga2, mut sum_wg) = (zero, zero, zero);
     let mut by_j = [zero; 3];
