@@ -10,11 +10,15 @@
 //!   axis-aligned half-space collider (e.g. the ground) the particles start in front of, and
 //!   is shrunk to keep the grid under [`MAX_NODES`] nodes. Particles that still reach the
 //!   edge are held there by the simulator's walls (separating) and counted.
+//!
+//! A grid over [`MAX_GRID_NODES`] is refused before anything runs, naming `domain` (a file
+//! domain too large) or `grid_dx` (the particles' box alone too large for it, with the
+//! smallest `grid_dx` that keeps it under [`MAX_NODES`]).
 
 use std::path::Path;
 
 use glam::DVec3;
-use pipe_mpm::{Aabb, Collider, ParticleForce};
+use pipe_mpm::{Aabb, Collider, MAX_GRID_NODES, ParticleForce};
 
 use super::SimulateError;
 use super::spec::{BoundarySpec, BoxSpec, ForceSpec, ParticleSet, SimSpec, fmt_num};
@@ -127,6 +131,17 @@ pub fn setup(
         }
         None => auto_domain(spec, &colliders, lo0, hi0, dx, frames, &mut warnings),
     };
+    let nodes = node_count(&domain, dx);
+    if nodes > MAX_GRID_NODES {
+        return Err(grid_too_large(
+            spec,
+            particles,
+            (dx, &dx_source),
+            spec.domain.is_some(),
+            (lo0, hi0),
+            nodes,
+        ));
+    }
     let forces = spec
         .forces
         .iter()
@@ -225,13 +240,105 @@ fn auto_domain(
         source.push_str(&format!(
             " (reach scaled by {reach} to stay under {MAX_NODES} grid nodes)"
         ));
-        warnings.push(format!(
-            "the automatic domain was limited to about {MAX_NODES} grid nodes; particles that \
-             reach its edge are held there (see `held` per frame); set `domain` to choose it"
-        ));
+        let nodes = node_count(&domain, dx);
+        warnings.push(if nodes > MAX_NODES {
+            format!(
+                "the particles' box alone needs {nodes:.3e} grid nodes (~{:.1} GB) at dx = {} m \
+                 (the automatic domain stops at {MAX_NODES}): the domain leaves no room for \
+                 the motion, and particles that reach its edge are held there (see `held` per \
+                 frame); a larger `grid_dx` gives it room",
+                nodes * BYTES_PER_NODE / 1e9,
+                short(dx)
+            )
+        } else {
+            format!(
+                "the automatic domain was limited to {nodes} grid nodes (at most \
+                 {MAX_NODES}); particles that reach its edge are held there (see `held` per \
+                 frame); set `domain` to choose it"
+            )
+        });
     }
     (domain, source)
 }
+
+/// The error for a grid over [`MAX_GRID_NODES`]: it names `domain` when the particles' own
+/// box would fit at this `dx`, else `grid_dx` (or the spacing it was derived from), with the
+/// smallest `dx` that keeps the particles' box under [`MAX_NODES`].
+fn grid_too_large(
+    spec: &SimSpec,
+    particles: &Path,
+    (dx, dx_source): (f64, &str),
+    domain_from_file: bool,
+    (lo0, hi0): (DVec3, DVec3),
+    nodes: f64,
+) -> SimulateError {
+    let pad = |dx: f64| Aabb::new(lo0 - DVec3::splat(4.0 * dx), hi0 + DVec3::splat(4.0 * dx));
+    let size = (hi0 - lo0).to_array().map(sig3);
+    let what = format!(
+        "the grid would have {nodes:.3e} nodes at dx = {} m, more than the {MAX_GRID_NODES:.0e} a \
+         run can hold",
+        short(dx)
+    );
+    if domain_from_file && node_count(&pad(dx), dx) <= MAX_GRID_NODES {
+        return spec.error_at(
+            "domain",
+            format!("invalid `domain`: {what}"),
+            Some(format!(
+                "the particles span {} x {} x {} m; choose a smaller `domain` or a larger \
+                 `grid_dx`",
+                size[0], size[1], size[2]
+            )),
+        );
+    }
+    // Smallest dx (two significant digits, rounded up) whose padded particle box fits.
+    let mut fit = dx * (node_count(&pad(dx), dx) / MAX_NODES).cbrt();
+    while node_count(&pad(fit), fit) > MAX_NODES {
+        fit *= 1.05;
+    }
+    let scale = 10f64.powf(fit.log10().floor() - 1.0);
+    let fit = format!("{:.1e}", (fit / scale).ceil() * scale);
+    let across = format!(
+        "the particles span {} x {} x {} m",
+        size[0], size[1], size[2]
+    );
+    if dx_source == "file" {
+        spec.error_at(
+            "grid_dx",
+            format!("invalid `grid_dx` = {}: {what}", fmt_num(dx)),
+            Some(format!(
+                "{across}; `grid_dx` >= {fit} m keeps the grid under {MAX_NODES} nodes"
+            )),
+        )
+    } else {
+        SimulateError::Spacing {
+            path: particles.to_path_buf(),
+            message: format!(
+                "{what} (dx = {dx_source} from the measured particle spacing; {across}); set \
+                 `grid_dx` in {} (>= {fit} m keeps the grid under {MAX_NODES} nodes)",
+                spec.file.display()
+            ),
+        }
+    }
+}
+
+/// `v` as written in files ([`fmt_num`]), or with four significant digits when that is long
+/// (a measured value).
+fn short(v: f64) -> String {
+    let s = fmt_num(v);
+    if s.len() > 8 { format!("{v:.3e}") } else { s }
+}
+
+/// `v` with three significant digits.
+fn sig3(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() {
+        return format!("{v}");
+    }
+    let decimals = (2.0 - v.abs().log10().floor()).max(0.0) as usize;
+    format!("{v:.decimals$}")
+}
+
+/// Bytes per grid node of a forward run (node velocities and momentum + mass, 32 B each).
+const BYTES_PER_NODE: f64 = 64.0;
 
 fn resolve_force(
     spec: &SimSpec,
@@ -373,6 +480,96 @@ mod tests {
             st.warnings
         );
         assert!(st.domain_source.contains("reach scaled"));
+    }
+
+    /// The number after `marker` in `msg`.
+    fn number_after(msg: &str, marker: &str) -> f64 {
+        let rest = &msg[msg.find(marker).expect(msg) + marker.len()..];
+        let end = rest.find(' ').unwrap_or(rest.len());
+        rest[..end].parse().expect(msg)
+    }
+
+    #[test]
+    fn a_grid_too_large_names_grid_dx_and_a_dx_that_fits() {
+        let s = spec(&format!(
+            "{MAT}frame_dt: 0.04\ngrid_dx: 1e-5\nparticle_volume: 1e-6\n"
+        ));
+        let e = setup(&s, Path::new("p.ply"), &block(), 2).unwrap_err();
+        let msg = e.to_string();
+        assert!(
+            msg.starts_with("sim.yaml: invalid `grid_dx` = 1e-5: the grid would have")
+                && msg.contains("at line 3:")
+                && msg.contains("the particles span 0.0300 x 0.0300 x 0.0300 m"),
+            "{msg}"
+        );
+        // The suggested dx runs, without a warning that the particles' box alone is too big.
+        let fit = number_after(&msg, "`grid_dx` >= ");
+        let s = spec(&format!(
+            "{MAT}frame_dt: 0.04\ngrid_dx: {fit}\nparticle_volume: 1e-6\n"
+        ));
+        let st = setup(&s, Path::new("p.ply"), &block(), 2).unwrap();
+        assert!(node_count(&st.domain, st.dx) <= MAX_NODES);
+        assert!(
+            st.warnings.iter().all(|w| !w.contains("alone")),
+            "{:?}",
+            st.warnings
+        );
+        // Just below it, the box alone is over the automatic limit: a warning, not an error.
+        let s = spec(&format!(
+            "{MAT}frame_dt: 0.04\ngrid_dx: {}\nparticle_volume: 1e-6\n",
+            fit * 0.8
+        ));
+        let st = setup(&s, Path::new("p.ply"), &block(), 2).unwrap();
+        assert!(
+            st.warnings
+                .iter()
+                .any(|w| w.contains("the particles' box alone needs")),
+            "{:?}",
+            st.warnings
+        );
+    }
+
+    #[test]
+    fn a_file_domain_too_large_names_domain() {
+        let s = spec(&format!(
+            "{MAT}frame_dt: 0.04\ngrid_dx: 0.001\nparticle_volume: 1e-6\n\
+             domain: {{min: [-100, -100, -100], max: [100, 100, 100]}}\n"
+        ));
+        let msg = setup(&s, Path::new("p.ply"), &block(), 2)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.starts_with("sim.yaml: invalid `domain`: the grid would have 8.0")
+                && msg.contains("choose a smaller `domain`"),
+            "{msg}"
+        );
+    }
+
+    #[test]
+    fn a_measured_dx_too_small_for_the_cloud_asks_for_grid_dx() {
+        // Two dense clusters 1 km apart: dx = 2 × 1e-4 m over a 1 km box.
+        let mut x = Vec::new();
+        for c in [0.0, 1000.0] {
+            for (i, j, k) in
+                (0..6).flat_map(|i| (0..6).flat_map(move |j| (0..6).map(move |k| (i, j, k))))
+            {
+                x.push(DVec3::new(
+                    c + i as f64 * 1e-4,
+                    j as f64 * 1e-4,
+                    k as f64 * 1e-4,
+                ));
+            }
+        }
+        let s = spec(&format!("{MAT}frame_dt: 0.04\n"));
+        let msg = setup(&s, Path::new("p.ply"), &x, 2)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.starts_with("p.ply: the grid would have")
+                && msg.contains("from the measured particle spacing")
+                && msg.contains("set `grid_dx` in sim.yaml (>= "),
+            "{msg}"
+        );
     }
 
     #[test]

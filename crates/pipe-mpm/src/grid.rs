@@ -52,6 +52,9 @@ pub struct GridSpec {
 /// Extra cells between the particle domain and the grid edge (the stencil needs 2).
 pub const MIN_MARGIN: usize = 2;
 
+/// Most nodes a grid may have (about 13 GB per 32-byte node buffer).
+pub const MAX_GRID_NODES: f64 = 4e8;
+
 impl GridSpec {
     /// Grid covering `domain` (m) with cell size `dx` (m) and `margin ≥ 2` extra cells per side.
     pub fn new(domain: Aabb, dx: f64, margin: usize) -> Result<Self, MpmError> {
@@ -98,7 +101,7 @@ impl GridSpec {
         let d = hi - lo + IVec3::ONE;
         let dims = [d.x as usize, d.y as usize, d.z as usize];
         let nodes = dims[0] as f64 * dims[1] as f64 * dims[2] as f64;
-        if nodes > 4e8 {
+        if nodes > MAX_GRID_NODES {
             return Err(MpmError::InvalidParameter {
                 field: "domain",
                 value: nodes,

@@ -69,7 +69,7 @@ pub use boundary::{Boundaries, BoundaryKind, Collider};
 pub use error::MpmError;
 pub use family::{Family, ModelVisitor};
 pub use forces::ParticleForce;
-pub use grid::{Aabb, GridSpec};
+pub use grid::{Aabb, GridSpec, MAX_GRID_NODES};
 pub use grid_update::mass_threshold;
 pub use models::{
     Constitutive, DruckerPrager, FixedCorotated, ModelGrad, NeoHookean, Newtonian, VonMises,
