@@ -12,6 +12,7 @@ use crate::pipeline::progress::Reporter;
 use crate::pipeline::runner::{RunError, RunOptions, StageState, Workspace, short};
 use crate::pipeline::spec::{self, Overrides, Preset};
 use crate::pipeline::stage::Registry;
+use crate::simulate::spec::short_number;
 
 /// pipe: multi-view videos of a deforming object → an editable, physics-driven 3D scene.
 #[derive(Debug, Parser)]
@@ -399,22 +400,6 @@ fn headline_metrics(entry: &Path) -> String {
         String::new()
     } else {
         format!("; {}", rows.join(", "))
-    }
-}
-
-/// A number with about four significant digits (integers as integers).
-fn short_number(v: f64) -> String {
-    let a = v.abs();
-    if v.fract() == 0.0 && a < 1e12 {
-        format!("{v:.0}")
-    } else if a >= 100.0 {
-        format!("{v:.1}")
-    } else if a >= 1.0 {
-        format!("{v:.2}")
-    } else if a >= 1e-3 {
-        format!("{v:.4}")
-    } else {
-        format!("{v:.3e}")
     }
 }
 

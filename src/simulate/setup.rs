@@ -21,7 +21,7 @@ use glam::DVec3;
 use pipe_mpm::{Aabb, Collider, MAX_GRID_NODES, ParticleForce};
 
 use super::SimulateError;
-use super::spec::{BoundarySpec, BoxSpec, ForceSpec, ParticleSet, SimSpec, fmt_num};
+use super::spec::{BoundarySpec, BoxSpec, ForceSpec, ParticleSet, SimSpec, fmt_num, short_number};
 use crate::scene::neighbors::{Spacing, bounds, particle_spacing};
 
 /// Largest automatic grid (nodes, including the simulator's 3-cell margin): about 230 MB of
@@ -248,7 +248,7 @@ fn auto_domain(
                  the motion, and particles that reach its edge are held there (see `held` per \
                  frame); a larger `grid_dx` gives it room",
                 nodes * BYTES_PER_NODE / 1e9,
-                short(dx)
+                short_number(dx)
             )
         } else {
             format!(
@@ -273,20 +273,22 @@ fn grid_too_large(
     nodes: f64,
 ) -> SimulateError {
     let pad = |dx: f64| Aabb::new(lo0 - DVec3::splat(4.0 * dx), hi0 + DVec3::splat(4.0 * dx));
-    let size = (hi0 - lo0).to_array().map(sig3);
+    let size = (hi0 - lo0).to_array().map(short_number);
+    let across = format!(
+        "the particles span {} x {} x {} m",
+        size[0], size[1], size[2]
+    );
     let what = format!(
         "the grid would have {nodes:.3e} nodes at dx = {} m, more than the {MAX_GRID_NODES:.0e} a \
          run can hold",
-        short(dx)
+        short_number(dx)
     );
     if domain_from_file && node_count(&pad(dx), dx) <= MAX_GRID_NODES {
         return spec.error_at(
             "domain",
             format!("invalid `domain`: {what}"),
             Some(format!(
-                "the particles span {} x {} x {} m; choose a smaller `domain` or a larger \
-                 `grid_dx`",
-                size[0], size[1], size[2]
+                "{across}; choose a smaller `domain` or a larger `grid_dx`"
             )),
         );
     }
@@ -297,10 +299,6 @@ fn grid_too_large(
     }
     let scale = 10f64.powf(fit.log10().floor() - 1.0);
     let fit = format!("{:.1e}", (fit / scale).ceil() * scale);
-    let across = format!(
-        "the particles span {} x {} x {} m",
-        size[0], size[1], size[2]
-    );
     if dx_source == "file" {
         spec.error_at(
             "grid_dx",
@@ -319,22 +317,6 @@ fn grid_too_large(
             ),
         }
     }
-}
-
-/// `v` as written in files ([`fmt_num`]), or with four significant digits when that is long
-/// (a measured value).
-fn short(v: f64) -> String {
-    let s = fmt_num(v);
-    if s.len() > 8 { format!("{v:.3e}") } else { s }
-}
-
-/// `v` with three significant digits.
-fn sig3(v: f64) -> String {
-    if v == 0.0 || !v.is_finite() {
-        return format!("{v}");
-    }
-    let decimals = (2.0 - v.abs().log10().floor()).max(0.0) as usize;
-    format!("{v:.decimals$}")
 }
 
 /// Bytes per grid node of a forward run (node velocities and momentum + mass, 32 B each).

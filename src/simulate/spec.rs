@@ -913,6 +913,22 @@ fn takes(f: MaterialFamily) -> String {
     format!("{} (and density)", parts.join(", "))
 }
 
+/// A number with about four significant digits (integers as integers).
+pub(crate) fn short_number(v: f64) -> String {
+    let a = v.abs();
+    if v.fract() == 0.0 && a < 1e12 {
+        format!("{v:.0}")
+    } else if a >= 100.0 {
+        format!("{v:.1}")
+    } else if a >= 1.0 {
+        format!("{v:.2}")
+    } else if a >= 1e-3 {
+        format!("{v:.4}")
+    } else {
+        format!("{v:.3e}")
+    }
+}
+
 /// A number as the user would write it.
 pub(crate) fn fmt_num(v: f64) -> String {
     if v != 0.0 && (v.abs() >= 1e5 || v.abs() < 1e-3) {
