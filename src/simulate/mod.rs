@@ -9,7 +9,9 @@
 //!    and a domain covering where the particles can go;
 //! 4. the family picks one monomorphised `pipe_mpm::Simulator`; every frame takes the
 //!    substeps the stability limit needs at its start (recomputed from the largest speed), or
-//!    the file's fixed `substeps`, which must respect the limit unless `allow_unstable: true`;
+//!    the file's fixed `substeps`, which must respect the looser limit of a fixed step (CFL
+//!    number 0.5 instead of the automatic 0.3, `pipe_mpm::StepLimits`) unless
+//!    `allow_unstable: true`;
 //! 5. [`output`] writes `frame_NNNN.ply` per frame (frame 0 = input), `particles.arrow` and
 //!    `summary.json`, each atomically; the summary is written last.
 //!
@@ -82,8 +84,9 @@ pub enum SimulateError {
     /// The file's fixed `substeps` breaks the stability limit (and `allow_unstable` is off).
     #[error(
         "{file}: `substeps` = {substeps}{at} is above the {limit} stability limit at frame {frame}: \
-         dt = frame_dt / substeps = {dt:.3e} s > {max_dt:.3e} s; at least {needed} substeps per \
-         frame are needed (leave `substeps` out to choose them automatically, raise it, or set \
+         dt = frame_dt / substeps = {dt:.3e} s (CFL number {cfl_number:.2}) > {max_dt:.3e} s, the \
+         largest step a fixed count may take; at least {needed} substeps per frame are needed \
+         (leave `substeps` out to choose them automatically, raise it, or set \
          `allow_unstable: true`)",
         at = position.map(|p| format!(" at line {p}")).unwrap_or_default()
     )]
@@ -100,8 +103,10 @@ pub enum SimulateError {
         dt: f64,
         /// The binding limit (`"elastic wave (CFL)"`, `"viscous"`).
         limit: &'static str,
-        /// Its largest stable substep (s).
+        /// The largest step a fixed count may take under it (s).
         max_dt: f64,
+        /// CFL number of `dt` (`pipe_mpm::StableStep::cfl_number`).
+        cfl_number: f64,
         /// Substeps per frame the limit needs.
         needed: usize,
     },
@@ -305,7 +310,8 @@ impl Job<'_> {
                         dt,
                         limit,
                         max_dt,
-                        needed: stable.substeps_per_frame(frame_dt),
+                        cfl_number: stable.cfl_number(dt),
+                        needed: stable.fixed_substeps_needed(frame_dt),
                     })
                 }
             }
@@ -367,10 +373,11 @@ impl Job<'_> {
             let dt = spec.frame_dt / n_sub as f64;
             if unstable {
                 let w = format!(
-                    "frame {frame}: `substeps` = {n_sub} gives dt = {dt:.3e} s, above the {} \
-                     stability limit {:.3e} s (allow_unstable)",
-                    stable.limit(),
-                    stable.dt()
+                    "frame {frame}: `substeps` = {n_sub} gives dt = {dt:.3e} s (CFL number \
+                     {:.2}), above the largest step a fixed count may take, {:.3e} s \
+                     (allow_unstable)",
+                    stable.cfl_number(dt),
+                    stable.max_fixed_dt()
                 );
                 self.progress.log(&format!("warning: {w}"));
                 warnings.push(w);
@@ -410,6 +417,8 @@ impl Job<'_> {
                 substeps_reason: reason.to_string(),
                 binding_limit: stable.limit().to_string(),
                 stable_dt_s: stable.dt(),
+                max_fixed_dt_s: stable.max_fixed_dt(),
+                cfl_number: stable.cfl_number(dt),
                 max_speed_m_s: max_speed,
                 unstable,
                 held: rep.held,

@@ -22,11 +22,21 @@ fn wave_limit_matches_formula_and_sets_substeps() {
     let (mu, lam) = lame(e, nu).unwrap();
     let want = 0.3 * dx / (5.0 + ((lam + 2.0 * mu) / rho).sqrt());
     assert!((st.wave - want).abs() < 1e-15 * want);
+    // A fixed step may go up to CFL number 0.5; automatic steps use 0.3.
+    assert!((st.wave_max - want * 0.5 / 0.3).abs() < 1e-15 * want);
+    assert!((st.cfl_number(st.wave) - 0.3).abs() < 1e-15);
+    assert!((st.cfl_number(st.wave_max) - 0.5).abs() < 1e-15);
+    assert_eq!(st.max_fixed_dt(), st.wave_max);
+    assert!(st.check(0.99 * st.wave_max).is_ok() && st.check(1.01 * st.wave_max).is_err());
     assert_eq!(st.viscous, f64::INFINITY);
     assert_eq!(st.limit(), "elastic wave (CFL)");
     let frame = 1.0 / 24.0;
     let n = substeps_per_frame(&st, frame, None).unwrap();
     assert!(frame / n as f64 <= st.dt() && frame / (n - 1) as f64 > st.dt());
+    let m = st.fixed_substeps_needed(frame);
+    assert!(m < n && frame / m as f64 <= st.wave_max && frame / (m - 1) as f64 > st.wave_max);
+    assert_eq!(substeps_per_frame(&st, frame, Some(m)).unwrap(), m);
+    assert!(substeps_per_frame(&st, frame, Some(m - 1)).is_err());
     match substeps_per_frame(&st, frame, Some(n / 2)) {
         Err(MpmError::StepTooLarge { limit, dt, max_dt }) => {
             assert_eq!(limit, "elastic wave (CFL)");
