@@ -28,7 +28,7 @@ use std::time::Instant;
 use glam::DVec3;
 use pipe_mpm::{
     Boundaries, BoundaryKind, Constitutive, Material, ModelVisitor, MpmError, SimConfig, Simulator,
-    State, StepLimits, stable_step,
+    State, StepLimits, speed_bound, stable_step_at_speed,
 };
 
 pub use output::{FrameStats, Summary, Trajectories};
@@ -109,6 +109,25 @@ pub enum SimulateError {
         cfl_number: f64,
         /// Substeps per frame the limit needs.
         needed: usize,
+    },
+    /// The automatic substeps of a frame would exceed [`MAX_SUBSTEPS_PER_FRAME`].
+    #[error(
+        "frame {frame} would need {needed:.3e} substeps (the {limit} limit at speeds up to \
+         {speed:.3e} m/s allows dt = {dt:.3e} s), more than the {MAX_SUBSTEPS_PER_FRAME} a frame \
+         may take: the run has diverged, or a force or impulse is too strong for this material \
+         (see `forces`)"
+    )]
+    TooManySubsteps {
+        /// Frame about to be simulated (1-based).
+        frame: u32,
+        /// Substeps the limit asks for.
+        needed: f64,
+        /// The binding limit.
+        limit: &'static str,
+        /// Its step (s).
+        dt: f64,
+        /// The speed bound it holds for (m/s).
+        speed: f64,
     },
     /// The simulator refused the settings or diverged.
     #[error("{context}: {source}")]
@@ -255,6 +274,10 @@ struct Job<'a> {
     progress: &'a dyn Progress,
 }
 
+/// Most automatic substeps a frame may take (beyond it the run has diverged, or a force is far
+/// too strong for the material: a frame would take hours).
+pub const MAX_SUBSTEPS_PER_FRAME: usize = 1_000_000;
+
 /// What the run produced.
 struct Done {
     state: State,
@@ -272,35 +295,50 @@ impl ModelVisitor for Job<'_> {
 }
 
 impl Job<'_> {
-    /// `(substeps, reason, unstable)` for the frame about to start, or the refusal.
+    /// `(substeps, reason, limits, speed bound, unstable)` for the frame about to start, or the
+    /// refusal. The limits hold for the particles' speed at the frame's start plus what this
+    /// frame's forces and impulses can add ([`pipe_mpm::speed_bound`]).
     fn substeps<M: Constitutive>(
         &self,
         sim: &Simulator<M>,
         state: &State,
         frame: u32,
-    ) -> Result<(usize, &'static str, pipe_mpm::StableStep, bool), SimulateError> {
-        let stable = stable_step(
+    ) -> Result<(usize, &'static str, pipe_mpm::StableStep, f64, bool), SimulateError> {
+        let frame_dt = self.spec.frame_dt;
+        let t0 = f64::from(frame - 1) * frame_dt;
+        let speed = speed_bound(
+            &state.v,
+            &self.mat.mass,
+            &self.setup.forces,
+            t0,
+            t0 + frame_dt,
+        );
+        let stable = stable_step_at_speed(
             sim.model(),
-            state,
             &self.mat,
+            speed,
             self.setup.dx,
             StepLimits::default(),
         );
-        let frame_dt = self.spec.frame_dt;
         let Some(user) = self.spec.substeps else {
-            return Ok((
-                stable.substeps_per_frame(frame_dt),
-                stable.limit(),
-                stable,
-                false,
-            ));
+            let n = stable.substeps_per_frame(frame_dt);
+            if n > MAX_SUBSTEPS_PER_FRAME {
+                return Err(SimulateError::TooManySubsteps {
+                    frame,
+                    needed: (frame_dt / stable.dt()).ceil(),
+                    limit: stable.limit(),
+                    dt: stable.dt(),
+                    speed,
+                });
+            }
+            return Ok((n, stable.limit(), stable, speed, false));
         };
         let dt = frame_dt / f64::from(user);
         match stable.check(dt) {
-            Ok(()) => Ok((user as usize, "user", stable, false)),
+            Ok(()) => Ok((user as usize, "user", stable, speed, false)),
             Err(MpmError::StepTooLarge { limit, max_dt, .. }) => {
                 if self.spec.allow_unstable {
-                    Ok((user as usize, "user", stable, true))
+                    Ok((user as usize, "user", stable, speed, true))
                 } else {
                     Err(SimulateError::UnstableSubsteps {
                         file: self.spec.file.clone(),
@@ -369,7 +407,7 @@ impl Job<'_> {
         self.progress
             .start("simulate", u64::from(self.frames.saturating_sub(1)));
         for frame in 1..self.frames {
-            let (n_sub, reason, stable, unstable) = self.substeps(&sim, &state, frame)?;
+            let (n_sub, reason, stable, speed, unstable) = self.substeps(&sim, &state, frame)?;
             let dt = spec.frame_dt / n_sub as f64;
             if unstable {
                 let w = format!(
@@ -420,6 +458,7 @@ impl Job<'_> {
                 max_fixed_dt_s: stable.max_fixed_dt(),
                 cfl_number: stable.cfl_number(dt),
                 max_speed_m_s: max_speed,
+                speed_bound_m_s: speed,
                 unstable,
                 held: rep.held,
                 max_held: rep.max_held,

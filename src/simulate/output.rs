@@ -158,11 +158,14 @@ pub struct FrameStats {
     pub stable_dt_s: f64,
     /// The largest step a fixed `substeps` may take (s; CFL number 0.5, or the viscous limit).
     pub max_fixed_dt_s: f64,
-    /// CFL number of this frame's substep: `dt · (max|v| + wave speed) / dx` at the frame's
-    /// start (automatic substeps ≤ 0.3; PAC-NeRF's 200 per frame are 0.3–0.4 on its scenes).
+    /// CFL number of this frame's substep: `dt · (speed bound + wave speed) / dx` (automatic
+    /// substeps ≤ 0.3; PAC-NeRF's 200 per frame are 0.17–0.43 on its scenes).
     pub cfl_number: f64,
     /// Largest particle speed at the frame's start (m/s).
     pub max_speed_m_s: f64,
+    /// The speed the limits hold for (m/s): each particle's speed at the frame's start plus
+    /// what the frame's forces and impulses can add to it (`max_speed_m_s` when none act).
+    pub speed_bound_m_s: f64,
     /// `dt_s` exceeds `max_fixed_dt_s` (only possible with `allow_unstable`).
     pub unstable: bool,
     /// Particle-substeps in which a particle was held at the domain walls.

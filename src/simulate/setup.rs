@@ -4,8 +4,10 @@
 //! Defaults (each recorded in the summary with where it came from):
 //! - spacing `s` = cube root of the volume per particle ([`particle_spacing`]);
 //!   `grid_dx = 2 s` and `particle_volume = s³` (PAC-NeRF samples 8 particles per `dx³` cell);
-//! - domain = the particles' box, grown by the reach of free flight over the simulated time
-//!   (`v0 t + g t²/2` on each axis, its extremes over `[0, T]`), plus a margin of
+//! - domain = the particles' box, grown by the reach of their centre of mass over the
+//!   simulated time (`v0 t + g t²/2` plus the velocity the `forces` give it, `|S| F / (N m)`
+//!   for a force or impulse on a set `S` of the `N` particles; its extremes over `[0, T]`
+//!   on each axis), plus a margin of
 //!   `max(4 dx, extent/2)` on each side for spreading and bouncing; it stops `2 dx` behind an
 //!   axis-aligned half-space collider (e.g. the ground) the particles start in front of, and
 //!   is shrunk to keep the grid under [`MAX_NODES`] nodes. Particles that still reach the
@@ -117,6 +119,12 @@ pub fn setup(
             },
         })
         .collect();
+    let forces = spec
+        .forces
+        .iter()
+        .enumerate()
+        .map(|(i, f)| resolve_force(spec, i, f, x0))
+        .collect::<Result<Vec<_>, _>>()?;
     let (lo0, hi0) = bounds(x0).expect("particles are not empty");
     let (domain, domain_source) = match spec.domain {
         Some(b) => {
@@ -129,7 +137,18 @@ pub fn setup(
             }
             (d, "file".to_string())
         }
-        None => auto_domain(spec, &colliders, lo0, hi0, dx, frames, &mut warnings),
+        None => {
+            let pushes = Pushes::new(&forces, x0.len(), spec.material.density * particle_volume);
+            auto_domain(
+                spec,
+                (&colliders, &pushes),
+                lo0,
+                hi0,
+                dx,
+                frames,
+                &mut warnings,
+            )
+        }
     };
     let nodes = node_count(&domain, dx);
     if nodes > MAX_GRID_NODES {
@@ -142,12 +161,6 @@ pub fn setup(
             nodes,
         ));
     }
-    let forces = spec
-        .forces
-        .iter()
-        .enumerate()
-        .map(|(i, f)| resolve_force(spec, i, f, x0))
-        .collect::<Result<Vec<_>, _>>()?;
     Ok(Setup {
         spacing,
         dx,
@@ -174,9 +187,67 @@ fn node_count(domain: &Aabb, dx: f64) -> f64 {
     grid_nodes(domain, dx).iter().map(|&n| n as f64).product()
 }
 
+/// The forces and impulses as accelerations and velocity changes of the particles' centre of
+/// mass (each acts on its own set: `|S| F / (N m)`), for the domain's reach.
+struct Pushes {
+    /// `(acceleration (m/s²), start, end (s))` per force.
+    forces: Vec<(DVec3, f64, f64)>,
+    /// `(velocity change (m/s), time (s))` per impulse.
+    impulses: Vec<(DVec3, f64)>,
+}
+
+impl Pushes {
+    /// From the resolved forces of `n` particles of `mass` (kg) each.
+    fn new(forces: &[ParticleForce], n: usize, mass: f64) -> Self {
+        let share = |set: &[usize]| set.len() as f64 / (n as f64 * mass);
+        let mut out = Self {
+            forces: Vec::new(),
+            impulses: Vec::new(),
+        };
+        for f in forces {
+            match f {
+                ParticleForce::Force {
+                    particles,
+                    force,
+                    start,
+                    end,
+                } => out.forces.push((*force * share(particles), *start, *end)),
+                ParticleForce::Impulse {
+                    particles,
+                    impulse,
+                    time,
+                } => out.impulses.push((*impulse * share(particles), *time)),
+            }
+        }
+        out
+    }
+
+    /// Displacement (m) of the centre of mass at time `tau` (s) from the pushes alone.
+    fn displacement(&self, tau: f64) -> DVec3 {
+        let mut d = DVec3::ZERO;
+        for &(a, start, end) in &self.forces {
+            // Time under the force so far, then coasting at the velocity it gave.
+            let u = tau.clamp(start, end.max(start)) - start;
+            d += a * (0.5 * u * u + u * (tau - end).max(0.0));
+        }
+        for &(dv, time) in &self.impulses {
+            d += dv * (tau - time).max(0.0);
+        }
+        d
+    }
+
+    /// Times (s) where the displacement changes form.
+    fn breakpoints(&self) -> impl Iterator<Item = f64> + '_ {
+        self.forces
+            .iter()
+            .flat_map(|&(_, s, e)| [s, e])
+            .chain(self.impulses.iter().map(|&(_, t)| t))
+    }
+}
+
 fn auto_domain(
     spec: &SimSpec,
-    colliders: &[Collider],
+    (colliders, pushes): (&[Collider], &Pushes),
     lo0: DVec3,
     hi0: DVec3,
     dx: f64,
@@ -186,21 +257,26 @@ fn auto_domain(
     let t = f64::from(frames.saturating_sub(1)) * spec.frame_dt;
     let v0 = DVec3::from_array(spec.initial_velocity);
     let g = DVec3::from_array(spec.gravity);
-    // Extremes of d(τ) = v0 τ + g τ²/2 over τ ∈ [0, t], per axis.
-    let mut dmin = DVec3::ZERO;
-    let mut dmax = DVec3::ZERO;
+    // Extremes of the centre of mass' displacement d(τ) = v0 τ + g τ²/2 + the pushes' over
+    // τ ∈ [0, t]: piecewise quadratic, so its ends, its pieces' ends and the free flight's
+    // apex, plus a fine sampling for the apexes of pushed pieces (their error ≤ |a| (t/2048)²/8).
+    let d = |tau: f64| v0 * tau + 0.5 * g * tau * tau + pushes.displacement(tau);
+    let mut times: Vec<f64> = (0..=2048).map(|k| t * f64::from(k) / 2048.0).collect();
+    times.extend(pushes.breakpoints().filter(|&b| b > 0.0 && b < t));
     for a in 0..3 {
-        let d = |tau: f64| v0[a] * tau + 0.5 * g[a] * tau * tau;
-        let mut cands = vec![0.0, d(t)];
         if g[a] != 0.0 {
             let ts = -v0[a] / g[a];
             if ts > 0.0 && ts < t {
-                cands.push(d(ts));
+                times.push(ts);
             }
         }
-        dmin[a] = cands.iter().copied().fold(f64::INFINITY, f64::min);
-        dmax[a] = cands.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     }
+    let (dmin, dmax) = times
+        .iter()
+        .fold((DVec3::ZERO, DVec3::ZERO), |(lo, hi), &tau| {
+            let p = d(tau);
+            (lo.min(p), hi.max(p))
+        });
     let extent = (hi0 - lo0).max_element();
     let full_margin = (4.0 * dx).max(0.5 * extent);
     let build = |reach: f64, margin: f64| {
@@ -234,7 +310,13 @@ fn auto_domain(
         domain = build(reach, margin);
     }
     let mut source = format!(
-        "auto: particle box grown by the free-flight reach over {t:.4} s plus a margin of {margin:.4} m"
+        "auto: particle box grown by the centre of mass' reach (free flight{}) over {t:.4} s \
+         plus a margin of {margin:.4} m",
+        if pushes.forces.is_empty() && pushes.impulses.is_empty() {
+            ""
+        } else {
+            " and forces"
+        }
     );
     if limited {
         source.push_str(&format!(

@@ -441,6 +441,58 @@ fn impulse_on_a_box_and_force_on_indices() {
     assert!((mean(2) - 4e-5 / 0.512).abs() < 1e-6, "{}", mean(2));
 }
 
+/// A push in the middle of a frame: that frame's substeps hold for the speed the impulse gives
+/// (20 m/s on a soft block whose waves travel at 3.7 m/s: from the speed at the frame's start
+/// alone it would take 13 substeps at CFL number 1.8), and the automatic domain covers the
+/// 1.4 m the block then travels, so no particle is held. An impulse far too strong for the
+/// material is refused, naming the frame, instead of running for hours.
+#[test]
+fn a_push_mid_frame_sets_the_substeps_and_the_domain() {
+    let tmp = tempfile::tempdir().unwrap();
+    let block = write_ply(tmp.path(), "block.ply", &lattice(8, 0.01, [0.0, 0.5, 0.0]));
+    let sim = |impulse: f64| {
+        format!(
+            "material: {{family: elastic, youngs_modulus: 1.0e4, poisson_ratio: 0.3, density: 1000}}\n\
+             gravity: [0, 0, 0]\n\
+             frame_dt: 0.02\n\
+             grid_dx: 0.02\n\
+             particle_volume: 1.0e-6\n\
+             forces:\n  \
+               - {{kind: impulse, particles: all, impulse: [{impulse:e}, 0, 0], time: 0.03}}\n"
+        )
+    };
+    let path = write_sim(tmp.path(), &sim(0.02));
+    let s = simulate::run(&block, &path, 6, &tmp.path().join("out"), &quiet()).unwrap();
+    let f1 = &s.frame_stats[0];
+    assert_eq!(f1.speed_bound_m_s, f1.max_speed_m_s, "{f1:?}");
+    let f2 = &s.frame_stats[1];
+    assert!(f2.max_speed_m_s < 1e-9, "{f2:?}");
+    assert!((f2.speed_bound_m_s - 20.0).abs() < 1e-9, "{f2:?}");
+    assert!(f2.substeps >= 79 && f2.cfl_number <= 0.3 + 1e-12, "{f2:?}");
+    assert_eq!(s.held_total, 0, "{:?}", s.frame_stats);
+    let tab: Trajectories = table::read(&tmp.path().join("out/particles.arrow")).unwrap();
+    let n = 512;
+    let mean_x = |frame: usize| {
+        tab.x[frame * n..(frame + 1) * n]
+            .iter()
+            .map(|p| f64::from(p[0]))
+            .sum::<f64>()
+            / n as f64
+    };
+    // 20 m/s from t = 0.03 s to 0.1 s: 1.4 m (to within the substep the impulse lands in).
+    assert!((mean_x(5) - mean_x(0) - 1.4).abs() < 0.01, "{}", mean_x(5));
+
+    let path = write_sim(tmp.path(), &sim(1e3));
+    let e = simulate::run(&block, &path, 6, &tmp.path().join("out2"), &quiet()).unwrap_err();
+    let msg = e.to_string();
+    assert!(
+        matches!(e, SimulateError::TooManySubsteps { frame: 2, .. })
+            && msg.contains("frame 2 would need")
+            && msg.contains("a force or impulse is too strong"),
+        "{msg}"
+    );
+}
+
 /// A run into a folder of an earlier, longer run leaves only this run's frames.
 #[test]
 fn stale_frames_are_removed() {

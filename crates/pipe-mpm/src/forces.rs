@@ -112,3 +112,47 @@ pub fn extra_momentum(forces: &[ParticleForce], n: usize, t: f64, dt: f64) -> Op
     }
     out
 }
+
+/// Upper bound of the speed (m/s) a particle can reach during `[t0, t1)` (s) from its velocity
+/// `v` at `t0` and the forces and impulses acting then: `max_p (|v_p| + Σ |F| τ / m_p +
+/// Σ |J| / m_p)` with `τ` the overlap of a force's window with `[t0, t1)` (to within the
+/// substep that straddles its end). Gravity and the material's own forces are not included.
+/// `mass` (kg) per particle; `v.len() == mass.len()`.
+pub fn speed_bound(v: &[DVec3], mass: &[f64], forces: &[ParticleForce], t0: f64, t1: f64) -> f64 {
+    let mut gain: Option<Vec<f64>> = None;
+    for f in forces {
+        let (parts, dp) = match f {
+            ParticleForce::Force {
+                particles,
+                force,
+                start,
+                end,
+            } => {
+                let overlap = end.min(t1) - start.max(t0);
+                if overlap <= 0.0 {
+                    continue;
+                }
+                (particles, force.length() * overlap)
+            }
+            ParticleForce::Impulse {
+                particles,
+                impulse,
+                time,
+            } => {
+                if !(*time >= t0 && *time < t1) {
+                    continue;
+                }
+                (particles, impulse.length())
+            }
+        };
+        let g = gain.get_or_insert_with(|| vec![0.0; v.len()]);
+        for &p in parts {
+            g[p] += dp / mass[p];
+        }
+    }
+    let speed = |p: usize| v[p].length();
+    match gain {
+        None => (0..v.len()).map(speed).fold(0.0, f64::max),
+        Some(g) => (0..v.len()).map(|p| speed(p) + g[p]).fold(0.0, f64::max),
+    }
+}

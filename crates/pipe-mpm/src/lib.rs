@@ -68,7 +68,7 @@ pub use adjoint::{BackwardOptions, Gradients, SeedGrad, SeedState, Tape};
 pub use boundary::{Boundaries, BoundaryKind, Collider};
 pub use error::MpmError;
 pub use family::{Family, ModelVisitor};
-pub use forces::ParticleForce;
+pub use forces::{ParticleForce, speed_bound};
 pub use grid::{Aabb, GridSpec, MAX_GRID_NODES};
 pub use grid_update::mass_threshold;
 pub use models::{
@@ -77,4 +77,4 @@ pub use models::{
 pub use p2g::Node;
 pub use sim::{RunReport, SimConfig, Simulator};
 pub use state::{FamilyGrad, Material, MaterialGrad, State, StateGrad, lame, lame_grad_to_e_nu};
-pub use timestep::{StableStep, StepLimits, stable_step, substeps_per_frame};
+pub use timestep::{StableStep, StepLimits, stable_step, stable_step_at_speed, substeps_per_frame};

@@ -117,6 +117,18 @@ pub fn stable_step<M: Constitutive>(
     limits: StepLimits,
 ) -> StableStep {
     let vmax = state.v.iter().map(|v| v.length()).fold(0.0, f64::max);
+    stable_step_at_speed(model, mat, vmax, dx, limits)
+}
+
+/// Stability limits for particles up to speed `vmax` (m/s), e.g. a bound that includes the
+/// forces and impulses about to act ([`crate::forces::speed_bound`]).
+pub fn stable_step_at_speed<M: Constitutive>(
+    model: &M,
+    mat: &Material,
+    vmax: f64,
+    dx: f64,
+    limits: StepLimits,
+) -> StableStep {
     let mut cmax: f64 = 0.0;
     let mut visc = f64::INFINITY;
     for p in 0..mat.len() {

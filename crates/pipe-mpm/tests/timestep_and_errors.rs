@@ -332,3 +332,47 @@ fn malformed_seed_gradient_is_refused() {
         assert!(ok.is_ok());
     }
 }
+
+/// The speed bound adds what the forces and impulses acting in the window can give each
+/// particle, and the limits at that speed are those of a state moving that fast.
+#[test]
+fn speed_bound_counts_the_forces_in_the_window() {
+    use pipe_mpm::{ParticleForce, speed_bound, stable_step_at_speed};
+    let v = vec![
+        DVec3::new(1.0, 0.0, 0.0),
+        DVec3::ZERO,
+        DVec3::new(0.0, 0.0, -0.5),
+    ];
+    let mass = vec![1e-3, 2e-3, 1e-3];
+    let forces = vec![
+        // 1e-3 N·s on particles 1 and 2 at t = 0.05 s: +0.5 and +1 m/s.
+        ParticleForce::Impulse {
+            particles: vec![1, 2],
+            impulse: DVec3::new(0.0, 1e-3, 0.0),
+            time: 0.05,
+        },
+        // 4e-2 N on particle 2 from 0.09 s on: +0.4 m/s over the 0.01 s it overlaps [0.04, 0.1).
+        ParticleForce::Force {
+            particles: vec![2],
+            force: DVec3::new(4e-2, 0.0, 0.0),
+            start: 0.09,
+            end: f64::MAX,
+        },
+    ];
+    let none = speed_bound(&v, &mass, &[], 0.04, 0.1);
+    assert_eq!(none, 1.0);
+    let b = speed_bound(&v, &mass, &forces, 0.04, 0.1);
+    assert!((b - (0.5 + 1.0 + 0.4)).abs() < 1e-12, "{b}");
+    // Outside the window nothing acts (an impulse at the window's end belongs to the next).
+    assert_eq!(speed_bound(&v, &mass, &forces, 0.0, 0.05), 1.0);
+    // Particle 2 under the force for all of [0.1, 0.2): +4 m/s.
+    let late = speed_bound(&v, &mass, &forces, 0.1, 0.2);
+    assert!((late - (0.5 + 4.0)).abs() < 1e-12, "{late}");
+
+    let mat = Material::from_e_nu(3, 1e-6, 1000.0, 1e5, 0.3).unwrap();
+    let mut fast = State::at_rest(vec![DVec3::splat(0.5); 3]);
+    fast.v[0] = DVec3::new(0.0, b, 0.0);
+    let want = stable_step(&NeoHookean, &fast, &mat, 0.02, StepLimits::default());
+    let got = stable_step_at_speed(&NeoHookean, &mat, b, 0.02, StepLimits::default());
+    assert_eq!(got, want);
+}
