@@ -13,7 +13,8 @@
 //! * `MPM_AD=1`: forward (checkpointed tape) and backward timed separately, 16 substeps,
 //!   N = 20k, G = 32, nh and fcr, threads from `MPM_AD_THREADS` (default 1), median of
 //!   `MPM_AD_REPS` (default 3) after one warm-up; `MPM_AD_N` changes N, `MPM_AD_CASE=nh|fcr`
-//!   runs one model.
+//!   runs one model. Loss = mean final y, its gradient added in place
+//!   ([`Simulator::backward_into`]).
 //! * `MPM_ROLLOUT=run|tape|tape+bwd`: one differentiable rollout of `MPM_FRAMES` (14) frames of
 //!   `MPM_SUBSTEPS_PER_FRAME` (50) substeps, N = 20k, G = 32, nh, checkpoint per frame; for
 //!   peak-memory measurements with `/usr/bin/time -v` (`run` = plain forward, no tape);
@@ -84,15 +85,20 @@ fn ad_case<M: Constitutive + Clone>(
             let t = std::time::Instant::now();
             let tape = sim.forward_tape(&mut s, &mat, 0.0, steps, every).unwrap();
             let t_f = t.elapsed().as_secs_f64();
-            // loss = mean final y (as the Taichi anchor)
-            let mut seed = StateGrad::zeros(n);
-            seed.x.iter_mut().for_each(|g| g.y = 1.0 / n as f64);
+            // loss = mean final y, its gradient added in place at the last substep (as the
+            // Taichi anchor's `compute_loss.grad()` adds into `x.grad`)
+            let d_mean_y = DVec3::new(0.0, 1.0 / n as f64, 0.0);
             let t = std::time::Instant::now();
             let gr = sim
-                .backward(
+                .backward_into(
                     &tape,
                     &mat,
-                    |k, _| (k == steps).then(|| seed.clone()),
+                    |k, _, g| {
+                        if k == steps {
+                            (0..n).for_each(|p| g.add_x(p, d_mean_y));
+                        }
+                        Ok(())
+                    },
                     BackwardOptions::default(),
                 )
                 .unwrap();
