@@ -125,6 +125,22 @@ pub fn setup(
         .enumerate()
         .map(|(i, f)| resolve_force(spec, i, f, x0))
         .collect::<Result<Vec<_>, _>>()?;
+    let t_end = f64::from(frames.saturating_sub(1)) * spec.frame_dt;
+    for (i, f) in forces.iter().enumerate() {
+        let when = match *f {
+            ParticleForce::Force { start, end, .. } if end <= 0.0 || start >= t_end => {
+                format!("from t = {} s", short_number(start))
+            }
+            ParticleForce::Impulse { time, .. } if time < 0.0 || time >= t_end => {
+                format!("at t = {} s", short_number(time))
+            }
+            _ => continue,
+        };
+        warnings.push(format!(
+            "`forces[{i}]` acts {when}, outside the simulated time [0, {}) s: it has no effect",
+            short_number(t_end)
+        ));
+    }
     let (lo0, hi0) = bounds(x0).expect("particles are not empty");
     let (domain, domain_source) = match spec.domain {
         Some(b) => {
@@ -300,12 +316,16 @@ fn auto_domain(
     let mut margin = full_margin;
     let mut domain = build(reach, margin);
     let mut limited = false;
-    while node_count(&domain, dx) > MAX_NODES && (reach > 1e-3 || margin > 4.0 * dx) {
+    // Shrink the reach, then the margin, then drop the reach (a push far too strong for the
+    // grid: the run then stops on its substeps, naming the force).
+    while node_count(&domain, dx) > MAX_NODES && (reach > 0.0 || margin > 4.0 * dx) {
         limited = true;
         if reach > 1e-3 {
             reach *= 0.5;
-        } else {
+        } else if margin > 4.0 * dx {
             margin = (margin * 0.5).max(4.0 * dx);
+        } else {
+            reach = 0.0;
         }
         domain = build(reach, margin);
     }

@@ -445,7 +445,8 @@ fn impulse_on_a_box_and_force_on_indices() {
 /// (20 m/s on a soft block whose waves travel at 3.7 m/s: from the speed at the frame's start
 /// alone it would take 13 substeps at CFL number 1.8), and the automatic domain covers the
 /// 1.4 m the block then travels, so no particle is held. An impulse far too strong for the
-/// material is refused, naming the frame, instead of running for hours.
+/// material is refused, naming the frame, instead of running for hours; so is a force whose
+/// reach no grid could hold (not blamed on `grid_dx`).
 #[test]
 fn a_push_mid_frame_sets_the_substeps_and_the_domain() {
     let tmp = tempfile::tempdir().unwrap();
@@ -490,6 +491,53 @@ fn a_push_mid_frame_sets_the_substeps_and_the_domain() {
             && msg.contains("frame 2 would need")
             && msg.contains("a force or impulse is too strong"),
         "{msg}"
+    );
+    // A force whose reach no grid can hold: the domain drops the reach, and the run is
+    // refused on its substeps (not on `grid_dx`, which is not the problem).
+    let text = sim(0.02).replace(
+        "{kind: impulse, particles: all, impulse: [2e-2, 0, 0], time: 0.03}",
+        "{kind: force, particles: all, force: [1e150, 0, 0], start: 0.0}",
+    );
+    assert!(text.contains("1e150"), "{text}");
+    let path = write_sim(tmp.path(), &text);
+    let e = simulate::run(&block, &path, 6, &tmp.path().join("out3"), &quiet()).unwrap_err();
+    assert!(
+        matches!(e, SimulateError::TooManySubsteps { frame: 1, .. }),
+        "{e}"
+    );
+}
+
+/// A force or impulse outside the simulated time is reported: it would otherwise do nothing
+/// without a word.
+#[test]
+fn forces_outside_the_simulated_time_are_reported() {
+    let tmp = tempfile::tempdir().unwrap();
+    let block = write_ply(tmp.path(), "block.ply", &lattice(4, 0.01, [0.0, 0.5, 0.0]));
+    let sim = write_sim(
+        tmp.path(),
+        &format!(
+            "{EXAMPLE}forces:\n  \
+             - {{kind: impulse, particles: all, impulse: [1.0e-4, 0, 0], time: -1}}\n  \
+             - {{kind: force, particles: all, force: [1.0e-4, 0, 0], start: 0.01}}\n  \
+             - {{kind: force, particles: all, force: [1.0e-4, 0, 0], start: 0.09}}\n"
+        ),
+    );
+    let s = simulate::run(&block, &sim, 3, &tmp.path().join("out"), &quiet()).unwrap();
+    let about = |i: usize| {
+        s.warnings
+            .iter()
+            .filter(|w| w.contains(&format!("`forces[{i}]`")))
+            .count()
+    };
+    assert_eq!(
+        (about(0), about(1), about(2)),
+        (1, 0, 1),
+        "{:?}",
+        s.warnings
+    );
+    assert_eq!(
+        s.warnings[0],
+        "`forces[0]` acts at t = -1 s, outside the simulated time [0, 0.0833) s: it has no effect"
     );
 }
 
