@@ -129,6 +129,21 @@ pub enum SimulateError {
         /// The speed bound it holds for (m/s).
         speed: f64,
     },
+    /// With a fixed substep count, particles move more than a cell per substep: the run has
+    /// diverged (even with `allow_unstable`).
+    #[error(
+        "the run has diverged by the start of frame {frame}: particles move at up to {speed:.3e} m/s, \
+         {cells:.3e} grid cells per substep (MPM needs well under one); `substeps` is too small \
+         for this material (leave it out to choose the substeps automatically)"
+    )]
+    Diverged {
+        /// Frame about to be simulated (1-based).
+        frame: u32,
+        /// Largest particle speed (m/s).
+        speed: f64,
+        /// Cells it crosses per substep.
+        cells: f64,
+    },
     /// The simulator refused the settings or diverged.
     #[error("{context}: {source}")]
     Simulation {
@@ -334,6 +349,15 @@ impl Job<'_> {
             return Ok((n, stable.limit(), stable, speed, false));
         };
         let dt = frame_dt / f64::from(user);
+        // Only a fixed count can get here (automatic steps keep speed · dt ≤ 0.3 dx).
+        let fastest = state.v.iter().map(|v| v.length()).fold(0.0, f64::max);
+        if fastest * dt > self.setup.dx {
+            return Err(SimulateError::Diverged {
+                frame,
+                speed: fastest,
+                cells: fastest * dt / self.setup.dx,
+            });
+        }
         match stable.check(dt) {
             Ok(()) => Ok((user as usize, "user", stable, speed, false)),
             Err(MpmError::StepTooLarge { limit, max_dt, .. }) => {
