@@ -28,7 +28,7 @@ use std::time::Instant;
 use glam::DVec3;
 use pipe_mpm::{
     Boundaries, BoundaryKind, Constitutive, Material, ModelVisitor, MpmError, SimConfig, Simulator,
-    State, StepLimits, speed_bound, stable_step_at_speed,
+    StableStep, State, StepLimits, speed_bound, stable_step_at_speed,
 };
 
 pub use output::{FrameStats, Summary, Trajectories};
@@ -293,6 +293,20 @@ struct Job<'a> {
 /// too strong for the material: a frame would take hours).
 pub const MAX_SUBSTEPS_PER_FRAME: usize = 1_000_000;
 
+/// How a frame is stepped.
+struct FrameStep {
+    /// Substeps it takes.
+    substeps: usize,
+    /// Why: `"user"` or the binding limit.
+    reason: &'static str,
+    /// The stability limits at the frame's start.
+    stable: StableStep,
+    /// The speed bound they hold for (m/s).
+    speed: f64,
+    /// The fixed count is above the limit (`allow_unstable`).
+    unstable: bool,
+}
+
 /// What the run produced.
 struct Done {
     state: State,
@@ -310,15 +324,15 @@ impl ModelVisitor for Job<'_> {
 }
 
 impl Job<'_> {
-    /// `(substeps, reason, limits, speed bound, unstable)` for the frame about to start, or the
-    /// refusal. The limits hold for the particles' speed at the frame's start plus what this
-    /// frame's forces and impulses can add ([`pipe_mpm::speed_bound`]).
+    /// The substeps of the frame about to start, or the refusal. The limits hold for the
+    /// particles' speed at the frame's start plus what this frame's forces and impulses can add
+    /// ([`pipe_mpm::speed_bound`]).
     fn substeps<M: Constitutive>(
         &self,
         sim: &Simulator<M>,
         state: &State,
         frame: u32,
-    ) -> Result<(usize, &'static str, pipe_mpm::StableStep, f64, bool), SimulateError> {
+    ) -> Result<FrameStep, SimulateError> {
         let frame_dt = self.spec.frame_dt;
         let t0 = f64::from(frame - 1) * frame_dt;
         let speed = speed_bound(
@@ -346,7 +360,13 @@ impl Job<'_> {
                     speed,
                 });
             }
-            return Ok((n, stable.limit(), stable, speed, false));
+            return Ok(FrameStep {
+                substeps: n,
+                reason: stable.limit(),
+                stable,
+                speed,
+                unstable: false,
+            });
         };
         let dt = frame_dt / f64::from(user);
         // Only a fixed count can get here (automatic steps keep speed · dt ≤ 0.3 dx).
@@ -359,10 +379,22 @@ impl Job<'_> {
             });
         }
         match stable.check(dt) {
-            Ok(()) => Ok((user as usize, "user", stable, speed, false)),
+            Ok(()) => Ok(FrameStep {
+                substeps: user as usize,
+                reason: "user",
+                stable,
+                speed,
+                unstable: false,
+            }),
             Err(MpmError::StepTooLarge { limit, max_dt, .. }) => {
                 if self.spec.allow_unstable {
-                    Ok((user as usize, "user", stable, speed, true))
+                    Ok(FrameStep {
+                        substeps: user as usize,
+                        reason: "user",
+                        stable,
+                        speed,
+                        unstable: true,
+                    })
                 } else {
                     Err(SimulateError::UnstableSubsteps {
                         file: self.spec.file.clone(),
@@ -431,7 +463,13 @@ impl Job<'_> {
         self.progress
             .start("simulate", u64::from(self.frames.saturating_sub(1)));
         for frame in 1..self.frames {
-            let (n_sub, reason, stable, speed, unstable) = self.substeps(&sim, &state, frame)?;
+            let FrameStep {
+                substeps: n_sub,
+                reason,
+                stable,
+                speed,
+                unstable,
+            } = self.substeps(&sim, &state, frame)?;
             let dt = spec.frame_dt / n_sub as f64;
             if unstable {
                 let w = format!(

@@ -125,22 +125,10 @@ pub fn setup(
         .enumerate()
         .map(|(i, f)| resolve_force(spec, i, f, x0))
         .collect::<Result<Vec<_>, _>>()?;
-    let t_end = f64::from(frames.saturating_sub(1)) * spec.frame_dt;
-    for (i, f) in forces.iter().enumerate() {
-        let when = match *f {
-            ParticleForce::Force { start, end, .. } if end <= 0.0 || start >= t_end => {
-                format!("from t = {} s", short_number(start))
-            }
-            ParticleForce::Impulse { time, .. } if time < 0.0 || time >= t_end => {
-                format!("at t = {} s", short_number(time))
-            }
-            _ => continue,
-        };
-        warnings.push(format!(
-            "`forces[{i}]` acts {when}, outside the simulated time [0, {}) s: it has no effect",
-            short_number(t_end)
-        ));
-    }
+    warnings.extend(forces_outside_time(
+        &forces,
+        f64::from(frames.saturating_sub(1)) * spec.frame_dt,
+    ));
     let (lo0, hi0) = bounds(x0).expect("particles are not empty");
     let (domain, domain_source) = match spec.domain {
         Some(b) => {
@@ -189,6 +177,32 @@ pub fn setup(
         forces,
         warnings,
     })
+}
+
+/// A warning per force or impulse that acts only outside the simulated time `[0, t_end)` (s).
+fn forces_outside_time(forces: &[ParticleForce], t_end: f64) -> Vec<String> {
+    let when = |f: &ParticleForce| match *f {
+        ParticleForce::Force { start, end, .. } if end <= 0.0 || start >= t_end => {
+            Some(format!("from t = {} s", short_number(start)))
+        }
+        ParticleForce::Impulse { time, .. } if time < 0.0 || time >= t_end => {
+            Some(format!("at t = {} s", short_number(time)))
+        }
+        _ => None,
+    };
+    forces
+        .iter()
+        .enumerate()
+        .filter_map(|(i, f)| {
+            when(f).map(|w| {
+                format!(
+                    "`forces[{i}]` acts {w}, outside the simulated time [0, {}) s: it has no \
+                     effect",
+                    short_number(t_end)
+                )
+            })
+        })
+        .collect()
 }
 
 /// Grid nodes for a domain (the simulator's layout: margin cells on each side).
