@@ -301,6 +301,8 @@ struct FrameStep {
     reason: &'static str,
     /// The stability limits at the frame's start.
     stable: StableStep,
+    /// Largest particle speed at the frame's start (m/s).
+    max_speed: f64,
     /// The speed bound they hold for (m/s).
     speed: f64,
     /// The fixed count is above the limit (`allow_unstable`).
@@ -335,6 +337,7 @@ impl Job<'_> {
     ) -> Result<FrameStep, SimulateError> {
         let frame_dt = self.spec.frame_dt;
         let t0 = f64::from(frame - 1) * frame_dt;
+        let max_speed = state.v.iter().map(|v| v.length()).fold(0.0, f64::max);
         let speed = speed_bound(
             &state.v,
             &self.mat.mass,
@@ -364,18 +367,18 @@ impl Job<'_> {
                 substeps: n,
                 reason: stable.limit(),
                 stable,
+                max_speed,
                 speed,
                 unstable: false,
             });
         };
         let dt = frame_dt / f64::from(user);
         // Only a fixed count can get here (automatic steps keep speed · dt ≤ 0.3 dx).
-        let fastest = state.v.iter().map(|v| v.length()).fold(0.0, f64::max);
-        if fastest * dt > self.setup.dx {
+        if max_speed * dt > self.setup.dx {
             return Err(SimulateError::Diverged {
                 frame,
-                speed: fastest,
-                cells: fastest * dt / self.setup.dx,
+                speed: max_speed,
+                cells: max_speed * dt / self.setup.dx,
             });
         }
         match stable.check(dt) {
@@ -383,6 +386,7 @@ impl Job<'_> {
                 substeps: user as usize,
                 reason: "user",
                 stable,
+                max_speed,
                 speed,
                 unstable: false,
             }),
@@ -392,6 +396,7 @@ impl Job<'_> {
                         substeps: user as usize,
                         reason: "user",
                         stable,
+                        max_speed,
                         speed,
                         unstable: true,
                     })
@@ -467,6 +472,7 @@ impl Job<'_> {
                 substeps: n_sub,
                 reason,
                 stable,
+                max_speed,
                 speed,
                 unstable,
             } = self.substeps(&sim, &state, frame)?;
@@ -482,7 +488,6 @@ impl Job<'_> {
                 self.progress.log(&format!("warning: {w}"));
                 warnings.push(w);
             }
-            let max_speed = state.v.iter().map(|v| v.length()).fold(0.0, f64::max);
             sim.set_dt(dt).map_err(|source| SimulateError::Simulation {
                 context: format!("frame {frame}"),
                 source,

@@ -99,13 +99,18 @@ impl StableStep {
 
     /// Fewest fixed substeps that cover `frame_dt` (s) within [`Self::max_fixed_dt`].
     pub fn fixed_substeps_needed(&self, frame_dt: f64) -> usize {
-        ((frame_dt / self.max_fixed_dt()).ceil() as usize).max(1)
+        steps_to_cover(frame_dt, self.max_fixed_dt())
     }
 
     /// Substeps needed to cover `frame_dt` (s) without exceeding the limit.
     pub fn substeps_per_frame(&self, frame_dt: f64) -> usize {
-        ((frame_dt / self.dt()).ceil() as usize).max(1)
+        steps_to_cover(frame_dt, self.dt())
     }
+}
+
+/// Fewest steps of at most `dt` covering `frame_dt` (s), at least one (saturating).
+fn steps_to_cover(frame_dt: f64, dt: f64) -> usize {
+    ((frame_dt / dt).ceil() as usize).max(1)
 }
 
 /// Stability limits for the current state and material with cell size `dx` (m).
