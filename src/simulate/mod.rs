@@ -6,7 +6,8 @@
 //! 2. the particles are read from any point-cloud or 3DGS PLY (`x y z`);
 //! 3. [`setup::setup`] resolves the defaults: particle spacing (hash-grid density, see
 //!    [`crate::scene::neighbors::particle_spacing`]), `grid_dx = 2·spacing`, `particle_volume = spacing³`,
-//!    and a domain covering where the particles can go;
+//!    and a domain covering where the particles can go; a surface-like cloud (3DGS splats)
+//!    gets `grid_dx` from its size instead and is filled with particles inside ([`fill`]);
 //! 4. the family picks one monomorphised `pipe_mpm::Simulator`; every frame takes the
 //!    substeps the stability limit needs at its start (recomputed from the largest speed), or
 //!    the file's fixed `substeps`, which must respect the looser limit of a fixed step (CFL
@@ -16,8 +17,10 @@
 //!    `summary.json`, each atomically; the summary is written last.
 //!
 //! The particle count never changes: particles that reach the domain edge are held there by
-//! the walls and counted per frame (`held`).
+//! the walls and counted per frame (`held`). Fillers are simulated after the input particles
+//! and never written.
 
+pub mod fill;
 pub mod output;
 pub mod setup;
 pub mod spec;
@@ -39,6 +42,7 @@ use crate::pipeline::progress::Progress;
 use crate::pipeline::spec::SpecError;
 use crate::pipeline::yaml::Position;
 use crate::scene::table::{self, TableError};
+use fill::Splat;
 use setup::Setup;
 use spec::fmt_num;
 
@@ -208,15 +212,22 @@ pub fn run(
         .iter()
         .map(|p| DVec3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])))
         .collect();
-    let setup = setup::setup(&spec, particles, &x0, frames)?;
-    let mat = spec
+    let splats = read_splats(particles, n)?;
+    let setup = setup::setup(&spec, particles, (&x0, &splats), frames)?;
+    let n_all = n + setup.fill.len();
+    let mut mat = spec
         .material
-        .material(n, setup.particle_volume)
+        .material(n_all, setup.particle_volume)
         .map_err(|source| SimulateError::Simulation {
             context: format!("material from {}", spec.file.display()),
             source,
         })?;
-    let mut state = State::at_rest(x0);
+    // The fillers (after the input particles) have their own volume and mass.
+    mat.volume[n..].fill(setup.fill_volume);
+    mat.mass[n..].fill(spec.material.density * setup.fill_volume);
+    let mut x_all = x0;
+    x_all.extend_from_slice(&setup.fill);
+    let mut state = State::at_rest(x_all);
     let v0 = DVec3::from_array(spec.initial_velocity);
     state.v.iter_mut().for_each(|v| *v = v0);
     for w in &setup.warnings {
@@ -227,19 +238,23 @@ pub fn run(
         setup: &setup,
         state,
         mat,
+        n_input: n,
         frames,
         out,
         progress,
     };
     let done = spec.material.mpm_family().visit(job)?;
 
-    let out_count = done.state.len();
+    // Rows per written frame (the fillers are not written).
+    let out_count = done.trajectories.len() / frames as usize;
     table::write(&out.join("particles.arrow"), &done.trajectories)?;
     let mut warnings = setup.warnings.clone();
     warnings.extend(done.warnings);
     let substeps_total = done.stats.iter().map(|s| s.substeps).sum();
     let held_total = done.stats.iter().map(|s| s.held).sum();
     let mass = spec.material.density * setup.particle_volume;
+    let total_mass =
+        mass * n as f64 + spec.material.density * setup.fill_volume * setup.fill.len() as f64;
     let summary = Summary {
         pipe_version: env!("CARGO_PKG_VERSION").to_string(),
         particles_file: particles.display().to_string(),
@@ -257,7 +272,10 @@ pub fn run(
         particle_volume_m3: setup.particle_volume,
         particle_volume_source: setup.volume_source.clone(),
         particle_mass_kg: mass,
-        total_mass_kg: mass * n as f64,
+        total_mass_kg: total_mass,
+        fill: setup.fill_source.clone(),
+        fill_particles: setup.fill.len(),
+        fill_particle_volume_m3: setup.fill_volume,
         domain: spec::BoxSpec {
             min: setup.domain.lo.to_array(),
             max: setup.domain.hi.to_array(),
@@ -278,12 +296,37 @@ pub fn run(
     Ok(summary)
 }
 
+/// The splats of a 3DGS PLY (`scale_*`, `rot_*`, `opacity` beside `x y z`), for the interior
+/// filling; empty for a plain point cloud. Records that make no splat (a zero rotation) are
+/// skipped.
+fn read_splats(particles: &Path, n: usize) -> Result<Vec<Splat>, SimulateError> {
+    let g = match ply::read_gaussians(particles) {
+        Ok(g) => g,
+        Err(PlyError::MissingProperty { .. }) => return Ok(Vec::new()),
+        Err(e) => return Err(e.into()),
+    };
+    debug_assert_eq!(g.len(), n);
+    let f = |v: [f32; 3]| v.map(f64::from);
+    Ok((0..g.len())
+        .filter_map(|i| {
+            Splat::from_3dgs(
+                DVec3::from_array(f(g.position[i])),
+                f(g.log_scale[i]),
+                g.rotation[i].map(f64::from),
+                f64::from(g.opacity_logit[i]),
+            )
+        })
+        .collect())
+}
+
 /// Everything the monomorphised run needs.
 struct Job<'a> {
     spec: &'a SimSpec,
     setup: &'a Setup,
     state: State,
     mat: Material,
+    /// Input particles (the first ones of `state`; the fillers follow).
+    n_input: usize,
     frames: u32,
     out: &'a Path,
     progress: &'a dyn Progress,
@@ -311,7 +354,6 @@ struct FrameStep {
 
 /// What the run produced.
 struct Done {
-    state: State,
     trajectories: Trajectories,
     stats: Vec<FrameStats>,
     warnings: Vec<String>,
@@ -460,9 +502,11 @@ impl Job<'_> {
                 self.out.display()
             ));
         }
-        output::write_frame(self.out, 0, &state.x)?;
+        // Only the input particles are written; the fillers follow them unseen.
+        let n_out = self.n_input;
+        output::write_frame(self.out, 0, &state.x[..n_out])?;
         let mut traj = Trajectories::default();
-        traj.push_frame(0, &state.x, &state.v);
+        traj.push_frame(0, &state.x[..n_out], &state.v[..n_out]);
         let mut stats = Vec::new();
         let mut warnings = Vec::new();
         self.progress
@@ -508,8 +552,8 @@ impl Job<'_> {
                         source,
                     }
                 })?;
-            output::write_frame(self.out, frame, &state.x)?;
-            traj.push_frame(frame as u16, &state.x, &state.v);
+            output::write_frame(self.out, frame, &state.x[..n_out])?;
+            traj.push_frame(frame as u16, &state.x[..n_out], &state.v[..n_out]);
             self.progress.message(&format!(
                 "frame {frame}: {n_sub} substeps ({reason}), held {}",
                 rep.held
@@ -532,7 +576,6 @@ impl Job<'_> {
             });
         }
         Ok(Done {
-            state,
             trajectories: traj,
             stats,
             warnings,

@@ -202,16 +202,22 @@ pub struct Summary {
     pub median_nn_distance_m: Option<f64>,
     /// Grid cell size (m).
     pub dx_m: f64,
-    /// `"file"` or `"2 x spacing"`.
+    /// `"file"`, `"2 x spacing"` or, for a surface-like cloud, `"largest extent / 32 ..."`.
     pub dx_source: String,
     /// Volume of one particle (m³).
     pub particle_volume_m3: f64,
-    /// `"file"` or `"spacing^3"`.
+    /// `"file"`, `"spacing^3"` or `"the surface layer's voxels / particles"`.
     pub particle_volume_source: String,
     /// Mass of one particle (kg) = density · volume.
     pub particle_mass_kg: f64,
-    /// Total mass (kg).
+    /// Total mass (kg), fillers included.
     pub total_mass_kg: f64,
+    /// What the interior filling did (see `pipe::simulate::fill`).
+    pub fill: String,
+    /// Particles added inside a closed surface: simulated, not written.
+    pub fill_particles: usize,
+    /// Volume of one filler particle (m³; 0 without fillers).
+    pub fill_particle_volume_m3: f64,
     /// Box the particles are held in (m).
     pub domain: BoxSpec,
     /// How the domain was chosen.

@@ -4,6 +4,11 @@
 //! Defaults (each recorded in the summary with where it came from):
 //! - spacing `s` = cube root of the volume per particle ([`particle_spacing`]);
 //!   `grid_dx = 2 s` and `particle_volume = s³` (PAC-NeRF samples 8 particles per `dx³` cell);
+//! - a *surface-like* cloud (no cell of the density measure lies inside it: 3DGS splats, a
+//!   scanned surface) has no volume density: `grid_dx` = its largest extent / 24
+//!   ([`SURFACE_CELLS_ACROSS`]), it is filled with particles when closed ([`super::fill`];
+//!   `fill_interior` in the file forces or forbids it), and its particles share the volume of
+//!   the surface layer the filling measured;
 //! - domain = the particles' box, grown by the reach of their centre of mass over the
 //!   simulated time (`v0 t + g t²/2` plus the velocity the `forces` give it, `|S| F / (N m)`
 //!   for a force or impulse on a set `S` of the `N` particles; its extremes over `[0, T]`
@@ -23,12 +28,17 @@ use glam::DVec3;
 use pipe_mpm::{Aabb, Collider, MAX_GRID_NODES, ParticleForce};
 
 use super::SimulateError;
+use super::fill::{MAX_FILL_VOXELS, Splat, down_axis, fill_interior};
 use super::spec::{BoundarySpec, BoxSpec, ForceSpec, ParticleSet, SimSpec, fmt_num, short_number};
 use crate::scene::neighbors::{Spacing, bounds, particle_spacing};
 
 /// Largest automatic grid (nodes, including the simulator's 3-cell margin): about 230 MB of
 /// node buffers.
 pub const MAX_NODES: f64 = 4_194_304.0;
+
+/// Grid cells across the largest extent of a surface-like cloud (PAC-NeRF's torus, 0.45 m at
+/// dx = 0.02 m, has 22). A filled ball then holds ~58k particles (8 per cell).
+pub const SURFACE_CELLS_ACROSS: f64 = 24.0;
 
 /// The simulator margin in cells (see `SimConfig::margin`).
 pub(crate) const GRID_MARGIN: usize = 3;
@@ -44,8 +54,14 @@ pub struct Setup {
     pub dx_source: String,
     /// Particle volume (m³).
     pub particle_volume: f64,
-    /// `"file"` or `"spacing^3"`.
+    /// `"file"`, `"spacing^3"` or how the surface layer gave it.
     pub volume_source: String,
+    /// Particles added inside a closed surface (m), simulated after the input ones, not written.
+    pub fill: Vec<DVec3>,
+    /// Volume of one filler particle (m³).
+    pub fill_volume: f64,
+    /// What the filling did, for the summary (`"off"`, `"no: the cloud is volumetric"`, ...).
+    pub fill_source: String,
     /// Box the particles are held in (m).
     pub domain: Aabb,
     /// How the domain was chosen.
@@ -62,42 +78,114 @@ pub struct Setup {
 pub fn setup(
     spec: &SimSpec,
     particles: &Path,
-    x0: &[DVec3],
+    (x0, splats): (&[DVec3], &[Splat]),
     frames: u32,
 ) -> Result<Setup, SimulateError> {
     let mut warnings = Vec::new();
-    let spacing = if spec.grid_dx.is_none() || spec.particle_volume.is_none() {
-        let sp = particle_spacing(x0).ok_or_else(|| SimulateError::Spacing {
-            path: particles.to_path_buf(),
-            message: format!(
-                "cannot measure the particle spacing from {} particle(s) with fewer than two \
-                 distinct positions; set `grid_dx` and `particle_volume` in {}",
-                x0.len(),
-                spec.file.display()
-            ),
-        })?;
-        if sp.interior_cells == 0 {
-            warnings.push(format!(
-                "could not measure the particle density (too few cells lie fully inside the \
-                 cloud: a small, thin or surface-only set): spacing taken as the median \
-                 nearest-neighbour distance {} m; set `grid_dx` and `particle_volume` if that \
-                 is wrong",
-                fmt_num(sp.median_nn)
-            ));
+    let sizes_given = spec.grid_dx.is_some() && spec.particle_volume.is_some();
+    let spacing = if !sizes_given || spec.fill_interior.is_none() {
+        let sp = particle_spacing(x0);
+        if sp.is_none() && !sizes_given {
+            return Err(SimulateError::Spacing {
+                path: particles.to_path_buf(),
+                message: format!(
+                    "cannot measure the particle spacing from {} particle(s) with fewer than two \
+                     distinct positions; set `grid_dx` and `particle_volume` in {}",
+                    x0.len(),
+                    spec.file.display()
+                ),
+            });
         }
-        Some(sp)
+        sp
     } else {
         None
     };
+    let surface_like = spacing.is_some_and(|sp| sp.interior_cells == 0);
+    let (lo0, hi0) = bounds(x0).expect("particles are not empty");
     let (dx, dx_source) = match (spec.grid_dx, spacing) {
         (Some(dx), _) => (dx, "file".to_string()),
+        (None, Some(sp)) if surface_like => {
+            let across = (hi0 - lo0).max_element() / SURFACE_CELLS_ACROSS;
+            if across > 2.0 * sp.median_nn {
+                (
+                    across,
+                    format!("largest extent / {SURFACE_CELLS_ACROSS} (a surface-like cloud)"),
+                )
+            } else {
+                (
+                    2.0 * sp.median_nn,
+                    "2 x median nearest-neighbour distance".to_string(),
+                )
+            }
+        }
         (None, Some(sp)) => (2.0 * sp.spacing, "2 x spacing".to_string()),
         (None, None) => unreachable!("spacing is measured when grid_dx is missing"),
     };
-    let (particle_volume, volume_source) = match (spec.particle_volume, spacing) {
-        (Some(v), _) => (v, "file".to_string()),
-        (None, Some(sp)) => (sp.spacing.powi(3), "spacing^3".to_string()),
-        (None, None) => unreachable!("spacing is measured when particle_volume is missing"),
+    let fill_wanted = spec.fill_interior.unwrap_or(surface_like);
+    let voxels = if fill_wanted || (surface_like && spec.particle_volume.is_none()) {
+        let down = down_axis(DVec3::from_array(spec.gravity));
+        let f = fill_interior(x0, splats, 0.5 * dx, down, MAX_FILL_VOXELS);
+        if f.is_none() {
+            warnings.push(format!(
+                "the interior was not measured nor filled: the particles' box needs more than \
+                 {MAX_FILL_VOXELS} voxels of dx/2 = {} m; a larger `grid_dx` allows it",
+                fmt_num(0.5 * dx)
+            ));
+        }
+        f
+    } else {
+        None
+    };
+    let closed = voxels.as_ref().is_some_and(|f| !f.points.is_empty());
+    let fill_source = match (&voxels, fill_wanted, closed) {
+        (_, false, _) if spec.fill_interior == Some(false) => "off (file)".to_string(),
+        (_, false, _) => "no: the cloud is volumetric".to_string(),
+        (None, true, _) => "no: too many voxels".to_string(),
+        (Some(f), true, false) if spec.fill_interior == Some(true) => {
+            warnings.push(format!(
+                "nothing is enclosed at the filling's voxel size {} m: the particles fill \
+                 their volume already, or their surface has gaps wider than four voxels (two \
+                 grid cells) that let the outside in, and is simulated as a shell; a larger \
+                 `grid_dx` closes wider gaps",
+                fmt_num(f.voxel)
+            ));
+            "no: nothing enclosed".to_string()
+        }
+        (Some(_), true, false) => "no: nothing enclosed (a solid or an open surface)".to_string(),
+        (Some(f), true, true) => format!(
+            "{} particle(s) inside the closed surface, on a {} m lattice ({})",
+            f.points.len(),
+            fmt_num(f.voxel),
+            if spec.fill_interior == Some(true) {
+                "file"
+            } else {
+                "a surface-like cloud"
+            }
+        ),
+    };
+    if surface_like && spec.grid_dx.is_none() {
+        warnings.push(format!(
+            "the cloud is surface-like (no particle lies deep inside it, as with 3DGS splats): \
+             grid_dx = {} m ({dx_source}); filling: {fill_source}; set `grid_dx`, \
+             `particle_volume` and `fill_interior` if that is wrong",
+            fmt_num(dx)
+        ));
+    }
+    let (particle_volume, volume_source) = match (spec.particle_volume, spacing, &voxels) {
+        (Some(v), _, _) => (v, "file".to_string()),
+        (None, Some(_), Some(f)) if surface_like => (
+            f.surface_volume() / x0.len() as f64,
+            "the surface layer's voxels / particles".to_string(),
+        ),
+        (None, Some(sp), _) => (sp.spacing.powi(3), "spacing^3".to_string()),
+        (None, None, _) => unreachable!("spacing is measured when particle_volume is missing"),
+    };
+    let (fill, fill_volume) = match voxels {
+        Some(f) if fill_wanted && closed => {
+            let v = f.filler_volume();
+            (f.points, v)
+        }
+        _ => (Vec::new(), 0.0),
     };
     let colliders: Vec<Collider> = spec
         .boundaries
@@ -129,7 +217,6 @@ pub fn setup(
         &forces,
         f64::from(frames.saturating_sub(1)) * spec.frame_dt,
     ));
-    let (lo0, hi0) = bounds(x0).expect("particles are not empty");
     let (domain, domain_source) = match spec.domain {
         Some(b) => {
             let d = Aabb::new(DVec3::from_array(b.min), DVec3::from_array(b.max));
@@ -142,7 +229,9 @@ pub fn setup(
             (d, "file".to_string())
         }
         None => {
-            let pushes = Pushes::new(&forces, x0.len(), spec.material.density * particle_volume);
+            let mass = spec.material.density
+                * (x0.len() as f64 * particle_volume + fill.len() as f64 * fill_volume);
+            let pushes = Pushes::new(&forces, mass);
             auto_domain(
                 spec,
                 (&colliders, &pushes),
@@ -171,6 +260,9 @@ pub fn setup(
         dx_source,
         particle_volume,
         volume_source,
+        fill,
+        fill_volume,
+        fill_source,
         domain,
         domain_source,
         colliders,
@@ -227,9 +319,9 @@ struct Pushes {
 }
 
 impl Pushes {
-    /// From the resolved forces of `n` particles of `mass` (kg) each.
-    fn new(forces: &[ParticleForce], n: usize, mass: f64) -> Self {
-        let share = |set: &[usize]| set.len() as f64 / (n as f64 * mass);
+    /// From the resolved forces (N or N·s per particle) on particles of `total_mass` (kg).
+    fn new(forces: &[ParticleForce], total_mass: f64) -> Self {
+        let share = |set: &[usize]| set.len() as f64 / total_mass;
         let mut out = Self {
             forces: Vec::new(),
             impulses: Vec::new(),
@@ -557,7 +649,7 @@ mod tests {
              initial_velocity: [1, 2, 0]\nboundaries: [{{kind: ground, y: 0}}]\n"
         ));
         let x = block();
-        let st = setup(&s, Path::new("p.ply"), &x, 26).unwrap();
+        let st = setup(&s, Path::new("p.ply"), (&x, &[]), 26).unwrap();
         assert_eq!((st.dx, st.particle_volume), (0.02, 1e-6));
         let (d, t) = (st.domain, 1.0);
         // x: 1 m of flight; y: up to the apex v²/2g above, down to 2 dx below the ground.
@@ -570,7 +662,7 @@ mod tests {
     #[test]
     fn a_long_fall_without_ground_is_limited() {
         let s = spec(&format!("{MAT}frame_dt: 0.04\n"));
-        let st = setup(&s, Path::new("p.ply"), &block(), 2000).unwrap();
+        let st = setup(&s, Path::new("p.ply"), (&block(), &[]), 2000).unwrap();
         assert!(node_count(&st.domain, st.dx) <= MAX_NODES);
         assert!(
             st.warnings.iter().any(|w| w.contains("limited")),
@@ -592,7 +684,7 @@ mod tests {
         let s = spec(&format!(
             "{MAT}frame_dt: 0.04\ngrid_dx: 1e-5\nparticle_volume: 1e-6\n"
         ));
-        let e = setup(&s, Path::new("p.ply"), &block(), 2).unwrap_err();
+        let e = setup(&s, Path::new("p.ply"), (&block(), &[]), 2).unwrap_err();
         let msg = e.to_string();
         assert!(
             msg.starts_with("sim.yaml: invalid `grid_dx` = 1e-5: the grid would have")
@@ -605,7 +697,7 @@ mod tests {
         let s = spec(&format!(
             "{MAT}frame_dt: 0.04\ngrid_dx: {fit}\nparticle_volume: 1e-6\n"
         ));
-        let st = setup(&s, Path::new("p.ply"), &block(), 2).unwrap();
+        let st = setup(&s, Path::new("p.ply"), (&block(), &[]), 2).unwrap();
         assert!(node_count(&st.domain, st.dx) <= MAX_NODES);
         assert!(
             st.warnings.iter().all(|w| !w.contains("alone")),
@@ -617,7 +709,7 @@ mod tests {
             "{MAT}frame_dt: 0.04\ngrid_dx: {}\nparticle_volume: 1e-6\n",
             fit * 0.8
         ));
-        let st = setup(&s, Path::new("p.ply"), &block(), 2).unwrap();
+        let st = setup(&s, Path::new("p.ply"), (&block(), &[]), 2).unwrap();
         assert!(
             st.warnings
                 .iter()
@@ -633,7 +725,7 @@ mod tests {
             "{MAT}frame_dt: 0.04\ngrid_dx: 0.001\nparticle_volume: 1e-6\n\
              domain: {{min: [-100, -100, -100], max: [100, 100, 100]}}\n"
         ));
-        let msg = setup(&s, Path::new("p.ply"), &block(), 2)
+        let msg = setup(&s, Path::new("p.ply"), (&block(), &[]), 2)
             .unwrap_err()
             .to_string();
         assert!(
@@ -645,11 +737,11 @@ mod tests {
 
     #[test]
     fn a_measured_dx_too_small_for_the_cloud_asks_for_grid_dx() {
-        // Two dense clusters 1 km apart: dx = 2 × 1e-4 m over a 1 km box.
+        // Two dense solid clusters 1 km apart: dx = 2 × 1e-4 m over a 1 km box.
         let mut x = Vec::new();
         for c in [0.0, 1000.0] {
             for (i, j, k) in
-                (0..6).flat_map(|i| (0..6).flat_map(move |j| (0..6).map(move |k| (i, j, k))))
+                (0..16).flat_map(|i| (0..16).flat_map(move |j| (0..16).map(move |k| (i, j, k))))
             {
                 x.push(DVec3::new(
                     c + i as f64 * 1e-4,
@@ -659,7 +751,7 @@ mod tests {
             }
         }
         let s = spec(&format!("{MAT}frame_dt: 0.04\n"));
-        let msg = setup(&s, Path::new("p.ply"), &x, 2)
+        let msg = setup(&s, Path::new("p.ply"), (&x, &[]), 2)
             .unwrap_err()
             .to_string();
         assert!(
@@ -673,7 +765,7 @@ mod tests {
     #[test]
     fn one_particle_needs_explicit_sizes() {
         let s = spec(&format!("{MAT}frame_dt: 0.04\n"));
-        let e = setup(&s, Path::new("p.ply"), &[DVec3::ONE], 2).unwrap_err();
+        let e = setup(&s, Path::new("p.ply"), (&[DVec3::ONE], &[]), 2).unwrap_err();
         assert!(
             e.to_string()
                 .contains("p.ply: cannot measure the particle spacing from 1 particle"),
@@ -682,6 +774,6 @@ mod tests {
         let s = spec(&format!(
             "{MAT}frame_dt: 0.04\ngrid_dx: 0.1\nparticle_volume: 1e-4\n"
         ));
-        assert!(setup(&s, Path::new("p.ply"), &[DVec3::ONE], 2).is_ok());
+        assert!(setup(&s, Path::new("p.ply"), (&[DVec3::ONE], &[]), 2).is_ok());
     }
 }

@@ -27,7 +27,8 @@
 //!
 //! Other keys: `domain: {min: [..], max: [..]}` (m; default: see [`super::setup`]),
 //! `substeps` (a fixed count per frame; refused above the stability limit unless
-//! `allow_unstable: true`), and
+//! `allow_unstable: true`), `fill_interior` (`true`/`false`; default: fill when the cloud is
+//! surface-like, e.g. 3DGS splats, see [`super::fill`]), and
 //! `boundaries:` items `{kind: ground, y, condition}`, `{kind: half_space, point, normal,
 //! condition}` (normal points into the free side), `{kind: box, min, max, condition}`
 //! (`condition` defaults to `sticky`, ground `y` to 0), and `forces:` items
@@ -253,6 +254,8 @@ pub struct SimSpec {
     pub substeps: Option<u32>,
     /// Accept a fixed `substeps` above the stability limit (with a warning).
     pub allow_unstable: bool,
+    /// Fill a closed surface with particles; `None` = when the cloud is surface-like.
+    pub fill_interior: Option<bool>,
     /// External forces and impulses.
     pub forces: Vec<ForceSpec>,
     positions: Positions,
@@ -329,6 +332,7 @@ impl SimSpec {
             boundaries,
             substeps,
             allow_unstable: raw.allow_unstable,
+            fill_interior: raw.fill_interior,
             forces,
             positions,
         })
@@ -454,6 +458,8 @@ struct RawSpec {
     substeps: Option<u64>,
     #[serde(default)]
     allow_unstable: bool,
+    #[serde(default)]
+    fill_interior: Option<bool>,
     #[serde(default)]
     forces: Vec<Value>,
 }

@@ -150,7 +150,12 @@ fn example_sim_yaml_on_a_lattice() {
     assert_eq!((s.dx_m, s.dx_source.as_str()), (0.02, "file"));
     assert_eq!(s.particle_volume_m3, 1e-6);
     assert!((s.particle_mass_kg - 1e-3).abs() < 1e-15 && (s.total_mass_kg - 1.0).abs() < 1e-9);
-    assert_eq!(s.spacing_m, None, "nothing needed the spacing");
+    // The spacing is measured only to tell a volume from a surface (`fill_interior` unset).
+    assert!((s.spacing_m.unwrap() - 0.01).abs() < 1e-6);
+    assert_eq!(
+        (s.fill.as_str(), s.fill_particles),
+        ("no: the cloud is volumetric", 0)
+    );
     assert_eq!(s.frame_stats.len(), 13);
     for f in &s.frame_stats {
         assert_eq!(f.substeps_reason, "elastic wave (CFL)");
@@ -438,6 +443,89 @@ fn gaussian_splatting_ply_input() {
     let s = simulate::run(&path, &fixture("example.sim.yaml"), 2, &out, &quiet()).unwrap();
     assert_eq!((s.particles_in, s.particles_out), (125, 125));
     assert_eq!(read(&out.join("frame_0001.ply")).len(), 125);
+}
+
+/// A 3DGS PLY of a closed surface (a ball's splats, none inside) gets a grid from its size, is
+/// filled, and falls as a solid ball: the fillers are simulated, not written.
+#[test]
+fn a_splatted_surface_is_filled_and_falls_as_a_solid() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (r, centre) = (0.1f64, DVec3::new(0.0, 0.3, 0.0));
+    // Fibonacci points 4 mm apart, each a flat splat (σ = 4 mm along the surface, 0.5 mm across
+    // it, as a 3DGS fit makes them), opacity sigmoid(3).
+    let n = (4.0 * std::f64::consts::PI * r * r / 1.6e-5) as usize;
+    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+    let mut text = format!("ply\nformat ascii 1.0\nelement vertex {n}\n");
+    for p in [
+        "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+        "rot_0", "rot_1", "rot_2", "rot_3",
+    ] {
+        text += &format!("property float {p}\n");
+    }
+    text += "end_header\n";
+    let (log_sigma, log_thin) = (0.004f64.ln(), 0.0005f64.ln());
+    for i in 0..n {
+        let y = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
+        let rho = (1.0 - y * y).sqrt();
+        let phi = golden * i as f64;
+        let normal = DVec3::new(rho * phi.cos(), y, rho * phi.sin());
+        let p = centre + r * normal;
+        let q = glam::DQuat::from_rotation_arc(DVec3::Z, normal);
+        text += &format!(
+            "{} {} {} 0.5 0.5 0.5 3 {log_sigma} {log_sigma} {log_thin} {} {} {} {}\n",
+            p.x, p.y, p.z, q.w, q.x, q.y, q.z
+        );
+    }
+    let ply = tmp.path().join("ball.ply");
+    std::fs::write(&ply, text).unwrap();
+    let yaml = "material: {family: elastic, youngs_modulus: 2.0e4, poisson_ratio: 0.3, density: 1000}\n\
+                frame_dt: 0.041666666666666664\n\
+                boundaries: [{kind: ground, y: 0.0}]\n";
+    let sim = write_sim(tmp.path(), yaml);
+    let out = tmp.path().join("filled");
+    let s = simulate::run(&ply, &sim, 3, &out, &quiet()).unwrap();
+    println!(
+        "ball: dx {} m, {} fillers, volume {:e} m^3 per splat, mass {} kg, {} substeps, {}",
+        s.dx_m, s.fill_particles, s.particle_volume_m3, s.total_mass_kg, s.substeps_total, s.fill
+    );
+    assert!(
+        s.dx_source.starts_with("largest extent / 24"),
+        "{}",
+        s.dx_source
+    );
+    assert!((s.dx_m - 0.2 / 24.0).abs() < 0.01 * s.dx_m, "{}", s.dx_m);
+    assert!(
+        s.fill_particles > 10_000
+            && s.fill
+                .starts_with(&format!("{} particle", s.fill_particles))
+    );
+    assert!((s.fill_particle_volume_m3 - (s.dx_m / 2.0).powi(3)).abs() < 1e-15);
+    // The ball's mass, to a few per cent.
+    let ball = 1000.0 * 4.0 / 3.0 * std::f64::consts::PI * r.powi(3);
+    assert!(
+        (s.total_mass_kg / ball - 1.0).abs() < 0.05,
+        "{} vs {ball}",
+        s.total_mass_kg
+    );
+    assert!(
+        s.warnings.iter().any(|w| w.contains("surface-like")),
+        "{:?}",
+        s.warnings
+    );
+    assert_eq!((s.particles_in, s.particles_out), (n, n));
+    let x2 = read(&out.join("frame_0002.ply"));
+    assert_eq!(x2.len(), n);
+    // It falls (free fall for 1/12 s: 3.4 cm) and stays a ball of radius 0.1 m.
+    let c2 = centroid(&x2);
+    assert!((c2.y - (0.3 - 0.5 * 9.8 / 144.0)).abs() < 2e-3, "{c2}");
+    let mean_r = x2.iter().map(|p| (*p - c2).length()).sum::<f64>() / n as f64;
+    assert!((mean_r - r).abs() < 2e-3, "{mean_r}");
+
+    // Told not to fill, the same splats are a hollow shell of the surface layer's mass.
+    let sim = write_sim(tmp.path(), &format!("{yaml}fill_interior: false\n"));
+    let s = simulate::run(&ply, &sim, 1, &tmp.path().join("shell"), &quiet()).unwrap();
+    assert_eq!((s.fill_particles, s.fill.as_str()), (0, "off (file)"));
+    assert!(s.total_mass_kg < 0.5 * ball, "{}", s.total_mass_kg);
 }
 
 /// Forces and impulses reach the particles they select, and the automatic domain covers a
