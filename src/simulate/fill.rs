@@ -136,22 +136,6 @@ impl InteriorFill {
     }
 }
 
-/// Voxel counts of the box `lo..hi` at edge `voxel` (with the padding), if not over `max`.
-fn voxel_dims(lo: DVec3, hi: DVec3, voxel: f64, max: usize) -> Option<[usize; 3]> {
-    let ext = (hi - lo) / voxel;
-    let mut dims = [0usize; 3];
-    let mut total = 1.0f64;
-    for a in 0..3 {
-        let n = ext[a].floor() + 1.0 + 2.0 * PAD as f64;
-        total *= n;
-        if !n.is_finite() || total > max as f64 {
-            return None;
-        }
-        dims[a] = n as usize;
-    }
-    Some(dims)
-}
-
 /// Which way is down: the axis closest to `g` (e.g. gravity) and whether `g` points to its
 /// negative side; `None` for a zero vector.
 pub fn down_axis(g: DVec3) -> Option<(usize, bool)> {
@@ -173,184 +157,19 @@ pub fn fill_interior(
     down: Option<(usize, bool)>,
     max_voxels: usize,
 ) -> Option<InteriorFill> {
-    let (lo, hi) = bounds(x)?;
-    let dims = voxel_dims(lo, hi, voxel, max_voxels)?;
-    let [nx, ny, nz] = dims;
-    let origin = lo - PAD as f64 * voxel;
-    let at = |i: usize, j: usize, k: usize| (i * ny + j) * nz + k;
-    let coord = |n: usize| [n / (ny * nz), (n / nz) % ny, n % nz];
-    let centre = |i: usize, j: usize, k: usize| {
-        origin + voxel * DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5)
-    };
-    let mut class = vec![EMPTY; nx * ny * nz];
-    // Inside the padding, so the grid's faces stay free for the flood.
-    let inner = |c: f64, a: usize| (c.max(PAD as f64) as usize).min(dims[a] - 1 - PAD);
-    // A particle's voxel is surface; the voxels under the corners of a cube of h/2 about it are
-    // covered by it, so that a lattice of spacing h leaves no voxel empty whatever its offset
-    // and rounding.
-    let voxel_of = |q: DVec3| {
-        let c = ((q - origin) / voxel).floor();
-        at(inner(c.x, 0), inner(c.y, 1), inner(c.z, 2))
-    };
-    for p in x {
-        class[voxel_of(*p)] = SURFACE;
+    let mut grid = Voxels::around(x, voxel, max_voxels)?;
+    grid.mark_particles(x);
+    grid.mark_splats(splats);
+    let surface_voxels = grid.count(|c| c == SURFACE || c == FIELD);
+    grid.thicken();
+    if let Some(down) = down {
+        grid.lay_floor(down);
     }
-    for p in x {
-        for corner in 0..8 {
-            let d = DVec3::new(
-                f64::from(corner & 1),
-                f64::from((corner >> 1) & 1),
-                f64::from(corner >> 2),
-            ) * 0.5
-                - 0.25;
-            let n = voxel_of(*p + d * voxel);
-            if class[n] == EMPTY {
-                class[n] = COVER;
-            }
-        }
-    }
-    if !splats.is_empty() {
-        let mut field = vec![0.0f32; class.len()];
-        for s in splats {
-            let (inv_cov, reach) = s.on_voxels(voxel);
-            let lo_v = ((s.centre - reach - origin) / voxel).floor();
-            let hi_v = ((s.centre + reach - origin) / voxel).floor();
-            let (i0, j0, k0) = (inner(lo_v.x, 0), inner(lo_v.y, 1), inner(lo_v.z, 2));
-            let (i1, j1, k1) = (inner(hi_v.x, 0), inner(hi_v.y, 1), inner(hi_v.z, 2));
-            for i in i0..=i1 {
-                for j in j0..=j1 {
-                    for k in k0..=k1 {
-                        let d = centre(i, j, k) - s.centre;
-                        let m = d.dot(inv_cov * d);
-                        if m < 9.0 {
-                            field[at(i, j, k)] += (s.opacity * (-0.5 * m).exp()) as f32;
-                        }
-                    }
-                }
-            }
-        }
-        for (c, f) in class.iter_mut().zip(&field) {
-            if *c == EMPTY && f64::from(*f) >= WALL_OPACITY {
-                *c = FIELD;
-            }
-        }
-    }
-    let surface_voxels = class
-        .iter()
-        .filter(|&&c| c == SURFACE || c == FIELD)
-        .count();
-
-    // Thicken the wall by `CLOSING` voxels (the padding keeps the grid's faces empty), growing
-    // a front from the wall.
-    let mut front: Vec<usize> = (0..class.len()).filter(|&n| class[n] != EMPTY).collect();
-    for _ in 0..CLOSING {
-        let mut grown = Vec::new();
-        for &n in &front {
-            let [i, j, k] = coord(n);
-            for (a, b, c) in neighbours26(i, j, k) {
-                let m = at(a, b, c);
-                if class[m] == EMPTY {
-                    class[m] = THICKENED;
-                    grown.push(m);
-                }
-            }
-        }
-        front = grown;
-    }
-
-    // The floor: the wall's lowest layer along `down`, solid across the box.
-    if let Some((axis, negative)) = down {
-        let layers = (0..class.len())
-            .filter(|&n| class[n] == SURFACE || class[n] == FIELD)
-            .map(|n| coord(n)[axis]);
-        let layer = if negative { layers.min() } else { layers.max() };
-        if let Some(layer) = layer {
-            for (n, c) in class.iter_mut().enumerate() {
-                if coord(n)[axis] == layer && *c == EMPTY {
-                    *c = FLOOR;
-                }
-            }
-        }
-    }
-
-    // Flood the outside (6-connected) through empty voxels, from every face voxel.
-    let mut stack: Vec<usize> = (0..class.len())
-        .filter(|&n| {
-            let c = coord(n);
-            (0..3).any(|a| c[a] == 0 || c[a] == dims[a] - 1) && class[n] == EMPTY
-        })
-        .collect();
-    stack.iter().for_each(|&n| class[n] = OUTSIDE);
-    while let Some(n) = stack.pop() {
-        let [i, j, k] = coord(n);
-        let steps = [(0, i, nx), (1, j, ny), (2, k, nz)];
-        for (axis, v, len) in steps {
-            let stride = [ny * nz, nz, 1][axis];
-            if v > 0 && class[n - stride] == EMPTY {
-                class[n - stride] = OUTSIDE;
-                stack.push(n - stride);
-            }
-            if v + 1 < len && class[n + stride] == EMPTY {
-                class[n + stride] = OUTSIDE;
-                stack.push(n + stride);
-            }
-        }
-    }
-    let floor_or_outside = |c: u8| c == OUTSIDE || c == FLOOR;
-
-    // The wall's outer layer: the thickening touching the outside (not counted), then the
-    // wall under it (half counted).
-    let touching = |class: &[u8], of: &dyn Fn(u8) -> bool, what: &dyn Fn(u8) -> bool| {
-        let mut found = Vec::new();
-        for i in 1..nx - 1 {
-            for j in 1..ny - 1 {
-                for k in 1..nz - 1 {
-                    if of(class[at(i, j, k)])
-                        && neighbours26(i, j, k).any(|(a, b, c)| what(class[at(a, b, c)]))
-                    {
-                        found.push(at(i, j, k));
-                    }
-                }
-            }
-        }
-        found
-    };
-    let outside_or_outer = |c: u8| c == OUTSIDE || c == OUTER;
-    for _ in 0..CLOSING {
-        for n in touching(&class, &|c| c == THICKENED, &outside_or_outer) {
-            class[n] = OUTER;
-        }
-    }
-    // The cover's outer layer is outside too (it only closes a lattice's gaps).
-    for n in touching(&class, &|c| c == COVER, &|c| {
-        outside_or_outer(c) || c == FLOOR
-    }) {
-        class[n] = OUTER;
-    }
-    let outside = |c: u8| c == OUTER || floor_or_outside(c);
-    let mut outer_voxels = 0;
-    for of in [SURFACE, FIELD] {
-        let found = touching(&class, &|c| c == of, &outside);
-        outer_voxels += found.len();
-        found.into_iter().for_each(|n| class[n] = OUTER_WALL);
-    }
-    // The input particles cover their voxels and the cover inside the wall.
-    let inner_voxels = class
-        .iter()
-        .filter(|&&c| c == SURFACE || c == COVER)
-        .count();
-
+    grid.flood_outside();
+    let outer_voxels = grid.peel_outside();
+    let inner_voxels = grid.count(|c| c == SURFACE || c == COVER);
     // Every other voxel inside the wall gets a filler.
-    let mut points = Vec::new();
-    for i in 0..nx {
-        for j in 0..ny {
-            for k in 0..nz {
-                if matches!(class[at(i, j, k)], EMPTY | THICKENED | FIELD) {
-                    points.push(centre(i, j, k));
-                }
-            }
-        }
-    }
+    let points = grid.centres_of(|c| matches!(c, EMPTY | THICKENED | FIELD));
     Some(InteriorFill {
         points,
         voxel,
@@ -360,11 +179,225 @@ pub fn fill_interior(
     })
 }
 
-/// The 26 neighbours of an inner voxel.
-fn neighbours26(i: usize, j: usize, k: usize) -> impl Iterator<Item = (usize, usize, usize)> {
+/// A voxel grid over the particles' box plus [`PAD`] voxels, one class per voxel.
+struct Voxels {
+    dims: [usize; 3],
+    /// Corner of voxel (0, 0, 0) (m).
+    origin: DVec3,
+    /// Edge (m).
+    h: f64,
+    class: Vec<u8>,
+}
+
+impl Voxels {
+    /// All empty, or `None` over `max` voxels or without particles.
+    fn around(x: &[DVec3], h: f64, max: usize) -> Option<Self> {
+        let (lo, hi) = bounds(x)?;
+        let ext = (hi - lo) / h;
+        let mut dims = [0usize; 3];
+        let mut total = 1.0f64;
+        for a in 0..3 {
+            let n = ext[a].floor() + 1.0 + 2.0 * PAD as f64;
+            total *= n;
+            if !n.is_finite() || total > max as f64 {
+                return None;
+            }
+            dims[a] = n as usize;
+        }
+        Some(Self {
+            dims,
+            origin: lo - PAD as f64 * h,
+            h,
+            class: vec![EMPTY; dims.iter().product()],
+        })
+    }
+
+    fn at(&self, [i, j, k]: [usize; 3]) -> usize {
+        (i * self.dims[1] + j) * self.dims[2] + k
+    }
+
+    fn coord(&self, n: usize) -> [usize; 3] {
+        let [_, ny, nz] = self.dims;
+        [n / (ny * nz), (n / nz) % ny, n % nz]
+    }
+
+    fn centre(&self, n: usize) -> DVec3 {
+        let [i, j, k] = self.coord(n);
+        self.origin + self.h * DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5)
+    }
+
+    /// The voxel coordinates of `q` (m), kept inside the padding so that the grid's faces stay
+    /// free for the flood.
+    fn coords_of(&self, q: DVec3) -> [usize; 3] {
+        let c = ((q - self.origin) / self.h).floor();
+        [0, 1, 2].map(|a| (c[a].max(PAD as f64) as usize).min(self.dims[a] - 1 - PAD))
+    }
+
+    fn count(&self, pred: impl Fn(u8) -> bool) -> usize {
+        self.class.iter().filter(|&&c| pred(c)).count()
+    }
+
+    fn centres_of(&self, pred: impl Fn(u8) -> bool) -> Vec<DVec3> {
+        (0..self.class.len())
+            .filter(|&n| pred(self.class[n]))
+            .map(|n| self.centre(n))
+            .collect()
+    }
+
+    /// The voxels (not on the grid's faces) of class `of` with a 26-neighbour `next_to`.
+    fn touching(&self, of: impl Fn(u8) -> bool, next_to: impl Fn(u8) -> bool) -> Vec<usize> {
+        (0..self.class.len())
+            .filter(|&n| of(self.class[n]))
+            .filter(|&n| {
+                let c = self.coord(n);
+                (0..3).all(|a| c[a] > 0 && c[a] + 1 < self.dims[a])
+                    && neighbours26(c).any(|m| next_to(self.class[self.at(m)]))
+            })
+            .collect()
+    }
+
+    /// A particle's voxel is surface; the voxels under the corners of a cube of h/2 about it are
+    /// covered by it, so that a lattice of spacing h leaves no voxel empty whatever its offset
+    /// and rounding.
+    fn mark_particles(&mut self, x: &[DVec3]) {
+        for p in x {
+            let n = self.at(self.coords_of(*p));
+            self.class[n] = SURFACE;
+        }
+        for p in x {
+            for corner in 0..8 {
+                let d = DVec3::new(
+                    f64::from(corner & 1),
+                    f64::from((corner >> 1) & 1),
+                    f64::from(corner >> 2),
+                ) * 0.5
+                    - 0.25;
+                let n = self.at(self.coords_of(*p + d * self.h));
+                if self.class[n] == EMPTY {
+                    self.class[n] = COVER;
+                }
+            }
+        }
+    }
+
+    /// Empty voxels where the splats' opacity field reaches [`WALL_OPACITY`] become wall.
+    fn mark_splats(&mut self, splats: &[Splat]) {
+        if splats.is_empty() {
+            return;
+        }
+        let mut field = vec![0.0f32; self.class.len()];
+        for s in splats {
+            let (inv_cov, reach) = s.on_voxels(self.h);
+            let lo = self.coords_of(s.centre - reach);
+            let hi = self.coords_of(s.centre + reach);
+            for i in lo[0]..=hi[0] {
+                for j in lo[1]..=hi[1] {
+                    for k in lo[2]..=hi[2] {
+                        let n = self.at([i, j, k]);
+                        let d = self.centre(n) - s.centre;
+                        let m = d.dot(inv_cov * d);
+                        if m < 9.0 {
+                            field[n] += (s.opacity * (-0.5 * m).exp()) as f32;
+                        }
+                    }
+                }
+            }
+        }
+        for (c, f) in self.class.iter_mut().zip(&field) {
+            if *c == EMPTY && f64::from(*f) >= WALL_OPACITY {
+                *c = FIELD;
+            }
+        }
+    }
+
+    /// Thickens the wall by [`CLOSING`] voxels, growing a front from it (the padding keeps the
+    /// grid's faces empty).
+    fn thicken(&mut self) {
+        let mut front: Vec<usize> = (0..self.class.len())
+            .filter(|&n| self.class[n] != EMPTY)
+            .collect();
+        for _ in 0..CLOSING {
+            let mut grown = Vec::new();
+            for &n in &front {
+                for m in neighbours26(self.coord(n)) {
+                    let m = self.at(m);
+                    if self.class[m] == EMPTY {
+                        self.class[m] = THICKENED;
+                        grown.push(m);
+                    }
+                }
+            }
+            front = grown;
+        }
+    }
+
+    /// The floor: the wall's lowest layer along `down` (axis, towards its negative side), solid
+    /// across the box.
+    fn lay_floor(&mut self, (axis, negative): (usize, bool)) {
+        let layers = (0..self.class.len())
+            .filter(|&n| matches!(self.class[n], SURFACE | FIELD))
+            .map(|n| self.coord(n)[axis]);
+        let Some(layer) = (if negative { layers.min() } else { layers.max() }) else {
+            return;
+        };
+        for n in 0..self.class.len() {
+            if self.coord(n)[axis] == layer && self.class[n] == EMPTY {
+                self.class[n] = FLOOR;
+            }
+        }
+    }
+
+    /// Floods the outside (6-connected) through empty voxels, from every face voxel.
+    fn flood_outside(&mut self) {
+        let dims = self.dims;
+        let on_face = |c: [usize; 3]| (0..3).any(|a| c[a] == 0 || c[a] == dims[a] - 1);
+        let mut stack: Vec<usize> = (0..self.class.len())
+            .filter(|&n| self.class[n] == EMPTY && on_face(self.coord(n)))
+            .collect();
+        stack.iter().for_each(|&n| self.class[n] = OUTSIDE);
+        let strides = [dims[1] * dims[2], dims[2], 1];
+        while let Some(n) = stack.pop() {
+            let c = self.coord(n);
+            for a in 0..3 {
+                let below = (c[a] > 0).then(|| n - strides[a]);
+                let above = (c[a] + 1 < dims[a]).then(|| n + strides[a]);
+                for m in [below, above].into_iter().flatten() {
+                    if self.class[m] == EMPTY {
+                        self.class[m] = OUTSIDE;
+                        stack.push(m);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Undoes the thickening on the outside, and the cover's outer layer (it only closes a
+    /// lattice's gaps); marks the wall next to the outside as its outer layer and returns how
+    /// many voxels that is.
+    fn peel_outside(&mut self) -> usize {
+        let outside_or_outer = |c: u8| c == OUTSIDE || c == OUTER;
+        for _ in 0..CLOSING {
+            for n in self.touching(|c| c == THICKENED, outside_or_outer) {
+                self.class[n] = OUTER;
+            }
+        }
+        for n in self.touching(|c| c == COVER, |c| outside_or_outer(c) || c == FLOOR) {
+            self.class[n] = OUTER;
+        }
+        let outer = self.touching(
+            |c| c == SURFACE || c == FIELD,
+            |c| outside_or_outer(c) || c == FLOOR,
+        );
+        outer.iter().for_each(|&n| self.class[n] = OUTER_WALL);
+        outer.len()
+    }
+}
+
+/// The 26 neighbours of a voxel not on the grid's faces.
+fn neighbours26([i, j, k]: [usize; 3]) -> impl Iterator<Item = [usize; 3]> {
     (0..27)
         .filter(|&n| n != 13)
-        .map(move |n| (i + n / 9 - 1, j + (n / 3) % 3 - 1, k + n % 3 - 1))
+        .map(move |n| [i + n / 9 - 1, j + (n / 3) % 3 - 1, k + n % 3 - 1])
 }
 
 #[cfg(test)]
