@@ -35,7 +35,8 @@
 //! `{kind: force, particles, force: [N per particle], start: s, end: s}` (end optional) and
 //! `{kind: impulse, particles, impulse: [N·s per particle], time: s}`, where `particles` is
 //! `all`, a list of indices into the input PLY, or a box `{min: [..], max: [..]}` selecting the
-//! particles of the initial state inside it.
+//! particles of the initial state inside it (always the input's particles: the fillers of a
+//! filled surface follow through the material).
 //!
 //! Every error names the file, the key, its line and column and the offending value; unknown
 //! keys get the nearest valid one.
