@@ -129,7 +129,7 @@ pub fn setup(
             warnings.push(format!(
                 "the interior was not measured nor filled: the particles' box needs more than \
                  {MAX_FILL_VOXELS} voxels of dx/2 = {} m; a larger `grid_dx` allows it",
-                fmt_num(0.5 * dx)
+                short_number(0.5 * dx)
             ));
         }
         f
@@ -147,7 +147,7 @@ pub fn setup(
                  their volume already, or their surface has gaps wider than four voxels (two \
                  grid cells) that let the outside in, and is simulated as a shell; a larger \
                  `grid_dx` closes wider gaps",
-                fmt_num(f.voxel)
+                short_number(f.voxel)
             ));
             "no: nothing enclosed".to_string()
         }
@@ -155,7 +155,7 @@ pub fn setup(
         (Some(f), true, true) => format!(
             "{} particle(s) inside the closed surface, on a {} m lattice ({})",
             f.points.len(),
-            fmt_num(f.voxel),
+            short_number(f.voxel),
             if spec.fill_interior == Some(true) {
                 "file"
             } else {
@@ -168,7 +168,7 @@ pub fn setup(
             "the cloud is surface-like (no particle lies deep inside it, as with 3DGS splats): \
              grid_dx = {} m ({dx_source}); filling: {fill_source}; set `grid_dx`, \
              `particle_volume` and `fill_interior` if that is wrong",
-            fmt_num(dx)
+            short_number(dx)
         ));
     }
     let (particle_volume, volume_source) = match (spec.particle_volume, spacing, &voxels) {
