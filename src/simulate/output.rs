@@ -14,7 +14,7 @@ use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
 use super::SimulateError;
-use super::spec::{BoxSpec, MaterialSpec};
+use super::spec::{BoxSpec, MaterialSpec, short_number};
 use crate::io::ply;
 use crate::scene::table::{Table, TableError, column};
 
@@ -272,14 +272,14 @@ impl Summary {
         };
         let mut text = format!(
             "simulated {} frame(s) of {} particles ({}) in {:.1} s: {steps}; dx {} m, particle \
-             volume {:e} m^3, {} particle-substeps held at the domain walls\nwrote {} frame PLYs, \
+             volume {} m^3, {} particle-substeps held at the domain walls\nwrote {} frame PLYs, \
              particles.arrow and summary.json to {}",
             self.frames.saturating_sub(1),
             self.particles_out,
             super::spec::family_name(self.material.family),
             self.wall_time_s,
-            self.dx_m,
-            self.particle_volume_m3,
+            short_number(self.dx_m),
+            short_number(self.particle_volume_m3),
             self.held_total,
             self.frames,
             out.display()
