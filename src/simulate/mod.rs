@@ -118,10 +118,12 @@ pub enum SimulateError {
     #[error(
         "frame {frame} would need {needed:.3e} substeps (the {limit} limit at speeds up to \
          {speed:.3e} m/s allows dt = {dt:.3e} s), more than the {MAX_SUBSTEPS_PER_FRAME} a frame \
-         may take: the run has diverged, or a force or impulse is too strong for this material \
-         (see `forces`)"
+         may take: {cause}"
     )]
     TooManySubsteps {
+        /// What most likely asks for them: a force or impulse, a `frame_dt` too long from the
+        /// start, or a run that diverged.
+        cause: String,
         /// Frame about to be simulated (1-based).
         frame: u32,
         /// Substeps the limit asks for.
@@ -397,7 +399,21 @@ impl Job<'_> {
         let Some(user) = self.spec.substeps else {
             let n = stable.substeps_per_frame(frame_dt);
             if n > MAX_SUBSTEPS_PER_FRAME {
+                let cause = if speed > max_speed * (1.0 + 1e-9) + 1e-12 {
+                    "a force or impulse is too strong for this material (see `forces`)".into()
+                } else if frame == 1 {
+                    format!(
+                        "`frame_dt` = {} s in {} is too long for this material, grid and \
+                         initial speed: a frame may last at most {} s",
+                        spec::fmt_num(frame_dt),
+                        self.spec.file.display(),
+                        spec::short_number(MAX_SUBSTEPS_PER_FRAME as f64 * stable.dt())
+                    )
+                } else {
+                    "the run has diverged".into()
+                };
                 return Err(SimulateError::TooManySubsteps {
+                    cause,
                     frame,
                     needed: (frame_dt / stable.dt()).ceil(),
                     limit: stable.limit(),

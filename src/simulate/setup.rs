@@ -180,6 +180,14 @@ pub fn setup(
         (None, Some(sp), _) => (sp.spacing.powi(3), "spacing^3".to_string()),
         (None, None, _) => unreachable!("spacing is measured when particle_volume is missing"),
     };
+    warnings.extend(size_warnings(
+        spec,
+        spacing.filter(|_| !surface_like),
+        dx,
+        particle_volume,
+        x0.len(),
+    ));
+    warnings.extend(particles_inside_boundaries(&spec.boundaries, x0, dx));
     let (fill, fill_volume) = match voxels {
         Some(f) if fill_wanted && closed => {
             let v = f.filler_volume();
@@ -269,6 +277,97 @@ pub fn setup(
         forces,
         warnings,
     })
+}
+
+/// Warnings for a `grid_dx` or `particle_volume` from the file that the measured `spacing` of a
+/// volumetric cloud of `n` particles contradicts: a grid finer than the spacing (cells between
+/// particles get no mass, so the body cannot hold together), or a particle volume over 100×
+/// off the volume each particle occupies (a unit slip: mm³ or cm³ for m³).
+fn size_warnings(
+    spec: &SimSpec,
+    spacing: Option<Spacing>,
+    dx: f64,
+    particle_volume: f64,
+    n: usize,
+) -> Vec<String> {
+    let Some(s) = spacing.map(|sp| sp.spacing) else {
+        return Vec::new();
+    };
+    let mut out = Vec::new();
+    let per_cell = (dx / s).powi(3);
+    if spec.grid_dx.is_some() && per_cell < 1.0 {
+        out.push(format!(
+            "`grid_dx` = {} m is below the particle spacing {} m: about {} particle(s) per \
+             cell (PAC-NeRF samples 8). Cells between particles get no mass, so the body \
+             cannot hold together and falls apart; about twice the spacing ({} m) keeps it \
+             whole",
+            fmt_num(dx),
+            short_number(s),
+            short_number(per_cell),
+            short_number(2.0 * s)
+        ));
+    }
+    let ratio = particle_volume / s.powi(3);
+    if spec.particle_volume.is_some() && !(0.01..=100.0).contains(&ratio) {
+        let rho = spec.material.density;
+        out.push(format!(
+            "`particle_volume` = {} m^3 is {}x the volume each particle occupies in the cloud \
+             (spacing {} m, cubed {} m^3): the {n} particles weigh {} kg at {} kg/m^3 instead \
+             of about {} kg; check its units (m^3)",
+            fmt_num(particle_volume),
+            if (10.0..1e4).contains(&ratio) {
+                format!("{ratio:.0}")
+            } else {
+                short_number(ratio)
+            },
+            short_number(s),
+            short_number(s.powi(3)),
+            short_number(rho * particle_volume * n as f64),
+            fmt_num(rho),
+            short_number(rho * s.powi(3) * n as f64),
+        ));
+    }
+    out
+}
+
+/// How deep (m) `x` lies inside the solid side of boundary `b` (negative: on the free side).
+fn depth_inside(b: &BoundarySpec, x: DVec3) -> f64 {
+    match b {
+        BoundarySpec::Ground { y, .. } => y - x.y,
+        BoundarySpec::HalfSpace { point, normal, .. } => {
+            -(x - DVec3::from_array(*point)).dot(DVec3::from_array(*normal))
+        }
+        BoundarySpec::Box { aabb, .. } => (x - DVec3::from_array(aabb.min))
+            .min(DVec3::from_array(aabb.max) - x)
+            .min_element(),
+    }
+}
+
+/// A warning per boundary that particles start inside, more than half a cell deep: its
+/// condition acts on them from the first substep (sticky: they never move), which a
+/// misplaced plane or box, or a wrong sign, causes.
+fn particles_inside_boundaries(boundaries: &[BoundarySpec], x0: &[DVec3], dx: f64) -> Vec<String> {
+    let names = describe_boundaries(boundaries);
+    boundaries
+        .iter()
+        .enumerate()
+        .filter_map(|(i, b)| {
+            let inside = x0
+                .iter()
+                .filter(|&&x| depth_inside(b, x) > 0.5 * dx)
+                .count();
+            (inside > 0).then(|| {
+                format!(
+                    "{inside} of the {} particles start inside `boundaries[{i}]` ({}), more \
+                     than half a cell deep: its condition holds them from the first substep \
+                     (sticky: they do not move); move the boundary or the particles if that is \
+                     wrong",
+                    x0.len(),
+                    names[i]
+                )
+            })
+        })
+        .collect()
 }
 
 /// A warning per force or impulse that acts only outside the simulated time `[0, t_end)` (s).
@@ -657,6 +756,66 @@ mod tests {
         assert!(d.hi.y >= 0.13 + 4.0 / 19.6, "{d:?}");
         assert!((d.lo.y + 0.04).abs() < 1e-12, "{d:?}");
         assert!(st.warnings.is_empty());
+    }
+
+    /// A 16³ lattice of spacing 1 cm whose lowest layer is at y = 0.1 m.
+    fn lattice() -> Vec<DVec3> {
+        (0..16)
+            .flat_map(|i| (0..16).flat_map(move |j| (0..16).map(move |k| (i, j, k))))
+            .map(|(i, j, k)| DVec3::new(i as f64, 10.0 + j as f64, k as f64) * 0.01)
+            .collect()
+    }
+
+    #[test]
+    fn a_grid_finer_than_the_spacing_or_a_volume_in_other_units_is_warned() {
+        let x = lattice();
+        let run = |sizes: &str| {
+            let s = spec(&format!("{MAT}frame_dt: 0.04\n{sizes}"));
+            setup(&s, Path::new("p.ply"), (&x, &[]), 2)
+                .unwrap()
+                .warnings
+        };
+        // PAC-NeRF's sampling: dx = 2 s, V = s³.
+        assert!(run("grid_dx: 0.02\nparticle_volume: 1e-6\n").is_empty());
+        let w = run("grid_dx: 0.004\nparticle_volume: 1e-3\n");
+        assert_eq!(w.len(), 2, "{w:?}");
+        assert!(
+            w[0].starts_with("`grid_dx` = 0.004 m is below the particle spacing 0.0100 m")
+                && w[0].contains("about twice the spacing (0.0200 m)"),
+            "{w:?}"
+        );
+        assert!(
+            w[1].starts_with("`particle_volume` = 0.001 m^3 is 1000x the volume")
+                && w[1].contains("4096 particles weigh 4096 kg"),
+            "{w:?}"
+        );
+        // Within 100x either way, nothing.
+        assert!(run("grid_dx: 0.01\nparticle_volume: 5e-5\n").is_empty());
+    }
+
+    #[test]
+    fn particles_starting_inside_a_boundary_are_counted() {
+        let x = lattice();
+        let s = spec(&format!(
+            "{MAT}frame_dt: 0.04\ngrid_dx: 0.02\nparticle_volume: 1e-6\nboundaries:\n\
+             - {{kind: ground, y: 0.15}}\n\
+             - {{kind: box, min: [-1, -1, -1], max: [0.035, 1, 1]}}\n\
+             - {{kind: ground, y: 0.105}}\n"
+        ));
+        let w = setup(&s, Path::new("p.ply"), (&x, &[]), 2)
+            .unwrap()
+            .warnings;
+        // Deeper than dx/2 = 1 cm: layers y = 0.10–0.13 below the first ground, x = 0–0.02 in
+        // the box; the last ground is under half a cell above the lowest layer.
+        assert_eq!(w.len(), 2, "{w:?}");
+        assert!(
+            w[0].starts_with("1024 of the 4096 particles start inside `boundaries[0]` (ground y = 0.15 m (sticky))"),
+            "{w:?}"
+        );
+        assert!(
+            w[1].starts_with("768 of the 4096 particles start inside `boundaries[1]`"),
+            "{w:?}"
+        );
     }
 
     #[test]

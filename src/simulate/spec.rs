@@ -920,11 +920,14 @@ fn takes(f: MaterialFamily) -> String {
     format!("{} (and density)", parts.join(", "))
 }
 
-/// A number with about four significant digits (integers as integers).
+/// A number with about four significant digits (integers below 10¹² as integers, other
+/// magnitudes of 10⁴ and more, or below 10⁻³, in exponent form).
 pub(crate) fn short_number(v: f64) -> String {
     let a = v.abs();
     if v.fract() == 0.0 && a < 1e12 {
         format!("{v:.0}")
+    } else if a >= 1e4 {
+        format!("{v:.3e}")
     } else if a >= 100.0 {
         format!("{v:.1}")
     } else if a >= 1.0 {
@@ -965,6 +968,24 @@ boundaries:
 
     fn parse(text: &str) -> Result<SimSpec, String> {
         SimSpec::parse(Path::new("sim.yaml"), text).map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn short_numbers_keep_about_four_digits_at_every_magnitude() {
+        for (v, want) in [
+            (14137.0, "14137"),
+            (0.0, "0"),
+            (-3.0, "-3"),
+            (0.018106207251548767, "0.0181"),
+            (3.955230209256568e-7, "3.955e-7"),
+            (2.5, "2.50"),
+            (123.456, "123.5"),
+            (12345.678, "1.235e4"),
+            (1e30, "1.000e30"),
+            (-2.5e15, "-2.500e15"),
+        ] {
+            assert_eq!(short_number(v), want, "{v}");
+        }
     }
 
     #[test]

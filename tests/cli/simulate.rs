@@ -749,6 +749,23 @@ fn impossible_material_values() {
     );
 }
 
+/// A `frame_dt` no material can step in a million substeps is refused before anything is
+/// written, naming `frame_dt`, the file and the longest frame that works.
+#[test]
+fn a_frame_dt_far_too_long_is_named() {
+    let (msg, e) = run_err(
+        |t| t.replace("frame_dt: 0.041666666666666664", "frame_dt: 1.0e9"),
+        2,
+    );
+    assert!(matches!(e, SimulateError::TooManySubsteps { frame: 1, .. }));
+    assert!(
+        msg.contains("`frame_dt` = 1e9 s in ")
+            && msg.contains("sim.yaml is too long for this material, grid and initial speed")
+            && msg.contains("a frame may last at most "),
+        "{msg}"
+    );
+}
+
 #[test]
 fn family_parameter_mismatch() {
     // A newtonian fluid given elastic parameters: the message says which families use them.
