@@ -126,6 +126,10 @@ enum Command {
         /// Output folder: frame_NNNN.ply, particles.arrow, summary.json.
         #[arg(long)]
         out: PathBuf,
+        /// Also write splats_NNNN.ply: the input 3DGS splats moved, stretched and turned with
+        /// the material (PhysGaussian), ready for `pipe render`.
+        #[arg(long)]
+        splats: bool,
     },
     /// Print the JSON Schema of pipeline files (for editors and validators).
     Schema,
@@ -363,11 +367,14 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
             material,
             frames,
             out,
+            splats,
         } => {
             install_interrupt_handler();
             let reporter = Reporter::auto(cli.quiet);
-            let summary = crate::simulate::run(particles, material, *frames, out, &reporter)
-                .map_err(|e| RunError::Output(e.to_string()))?;
+            let options = crate::simulate::Options { splats: *splats };
+            let summary =
+                crate::simulate::run_with(particles, material, *frames, out, &reporter, options)
+                    .map_err(|e| RunError::Output(e.to_string()))?;
             println!("{}", summary.report(out));
             Ok(())
         }

@@ -1,6 +1,7 @@
 //! Domain types shared by stages and their Arrow tables (ARCHITECTURE §5).
 
 pub mod camera;
+pub mod deform;
 pub mod frames;
 pub mod gaussians;
 pub mod metrics;

@@ -28,7 +28,7 @@ pub mod spec;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use glam::DVec3;
+use glam::{DMat3, DVec3};
 use pipe_mpm::{
     Boundaries, BoundaryKind, Constitutive, Material, ModelVisitor, MpmError, SimConfig, Simulator,
     StableStep, State, StepLimits, speed_bound, stable_step_at_speed,
@@ -41,6 +41,8 @@ use crate::io::ply::{self, PlyError};
 use crate::pipeline::progress::Progress;
 use crate::pipeline::spec::SpecError;
 use crate::pipeline::yaml::Position;
+use crate::scene::deform::deform;
+use crate::scene::gaussians::Gaussians;
 use crate::scene::table::{self, TableError};
 use fill::Splat;
 use setup::Setup;
@@ -68,6 +70,14 @@ pub enum SimulateError {
         path: PathBuf,
         /// Its vertex count.
         count: usize,
+    },
+    /// `--splats` on a PLY that is not a 3DGS one.
+    #[error("{path}: --splats needs a 3DGS PLY (x y z, f_dc_*, opacity, scale_*, rot_*): {source}")]
+    NotSplats {
+        /// The PLY.
+        path: PathBuf,
+        /// What is missing.
+        source: Box<PlyError>,
     },
     /// A bad `--frames` value.
     #[error("--frames {frames}: {reason}")]
@@ -182,6 +192,33 @@ pub fn run(
     out: &Path,
     progress: &dyn Progress,
 ) -> Result<Summary, SimulateError> {
+    run_with(
+        particles,
+        sim_file,
+        frames,
+        out,
+        progress,
+        Options::default(),
+    )
+}
+
+/// What `pipe simulate` writes besides the positions.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Options {
+    /// Also write `splats_NNNN.ply`: the input 3DGS splats carried by the motion
+    /// ([`crate::scene::deform`]).
+    pub splats: bool,
+}
+
+/// [`run`] with [`Options`].
+pub fn run_with(
+    particles: &Path,
+    sim_file: &Path,
+    frames: u32,
+    out: &Path,
+    progress: &dyn Progress,
+    options: Options,
+) -> Result<Summary, SimulateError> {
     let started = Instant::now();
     if frames == 0 {
         return Err(SimulateError::Frames {
@@ -215,6 +252,15 @@ pub fn run(
         .map(|p| DVec3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])))
         .collect();
     let splats = read_splats(particles, n)?;
+    let gaussians = if options.splats {
+        let g = ply::read_gaussians(particles).map_err(|source| SimulateError::NotSplats {
+            path: particles.to_path_buf(),
+            source: Box::new(source),
+        })?;
+        Some(g)
+    } else {
+        None
+    };
     let setup = setup::setup(&spec, particles, (&x0, &splats), frames)?;
     let n_all = n + setup.fill.len();
     let mut mat = spec
@@ -244,6 +290,7 @@ pub fn run(
         frames,
         out,
         progress,
+        gaussians: gaussians.as_ref(),
     };
     let done = spec.material.mpm_family().visit(job)?;
 
@@ -292,6 +339,7 @@ pub fn run(
         frame_stats: done.stats,
         held_total,
         warnings,
+        splats: options.splats,
         wall_time_s: started.elapsed().as_secs_f64(),
     };
     output::write_summary(out, &summary)?;
@@ -321,6 +369,19 @@ fn read_splats(particles: &Path, n: usize) -> Result<Vec<Splat>, SimulateError> 
         .collect())
 }
 
+/// The deformation gradients the splats follow: the particles' `F`, except for the Newtonian
+/// fluid, whose `F` holds only the volume ratio (`diag(J, 1, 1)`): its splats swell or shrink
+/// evenly, `J^(1/3) I`.
+fn splat_deformation(family: crate::pipeline::spec::MaterialFamily, f: &[DMat3]) -> Vec<DMat3> {
+    match family {
+        crate::pipeline::spec::MaterialFamily::Newtonian => f
+            .iter()
+            .map(|f| DMat3::from_diagonal(DVec3::splat(f.x_axis.x.max(0.0).cbrt())))
+            .collect(),
+        _ => f.to_vec(),
+    }
+}
+
 /// Everything the monomorphised run needs.
 struct Job<'a> {
     spec: &'a SimSpec,
@@ -332,6 +393,8 @@ struct Job<'a> {
     frames: u32,
     out: &'a Path,
     progress: &'a dyn Progress,
+    /// The input's 3DGS splats, written moved and deformed with every frame (`--splats`).
+    gaussians: Option<&'a Gaussians>,
 }
 
 /// Most automatic substeps a frame may take (beyond it the run has diverged, or a force is far
@@ -510,7 +573,7 @@ impl Job<'_> {
             self.substeps(&sim, &state, 1)?;
         }
 
-        let removed = output::prepare_dir(self.out, self.frames)?;
+        let removed = output::prepare_dir(self.out, self.frames, self.gaussians.is_some())?;
         if !removed.is_empty() {
             self.progress.log(&format!(
                 "removed {} stale frame file(s) of an earlier run from {}",
@@ -521,6 +584,9 @@ impl Job<'_> {
         // Only the input particles are written; the fillers follow them unseen.
         let n_out = self.n_input;
         output::write_frame(self.out, 0, &state.x[..n_out])?;
+        if let Some(g) = self.gaussians {
+            output::write_splats(self.out, 0, g)?;
+        }
         let mut traj = Trajectories::default();
         traj.push_frame(0, &state.x[..n_out], &state.v[..n_out]);
         let mut stats = Vec::new();
@@ -569,6 +635,10 @@ impl Job<'_> {
                     }
                 })?;
             output::write_frame(self.out, frame, &state.x[..n_out])?;
+            if let Some(g) = self.gaussians {
+                let f = splat_deformation(spec.material.family, &state.f[..n_out]);
+                output::write_splats(self.out, frame, &deform(g, &state.x[..n_out], &f))?;
+            }
             traj.push_frame(frame as u16, &state.x[..n_out], &state.v[..n_out]);
             self.progress.message(&format!(
                 "frame {frame}: {n_sub} substeps ({reason}), held {}",

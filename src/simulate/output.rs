@@ -2,6 +2,8 @@
 //!
 //! - `frame_0000.ply` … `frame_{frames-1}.ply`: positions (m) as binary little-endian
 //!   `float x y z`; frame 0 is the input state;
+//! - `splats_0000.ply` … (with `--splats`, for a 3DGS input): the input's splats moved and
+//!   deformed with their particles ([`crate::scene::deform`]), in the input's 3DGS layout;
 //! - `particles.arrow`: the [`Trajectories`] table, one row per particle per frame;
 //! - `summary.json`: the [`Summary`].
 
@@ -16,6 +18,7 @@ use serde::{Deserialize, Serialize};
 use super::SimulateError;
 use super::spec::{BoxSpec, MaterialSpec, short_number};
 use crate::io::ply;
+use crate::scene::gaussians::Gaussians;
 use crate::scene::table::{Table, TableError, column};
 
 /// The `particles` table (`particles.arrow`, Arrow IPC file, one record batch), rows ordered by
@@ -240,6 +243,9 @@ pub struct Summary {
     pub held_total: usize,
     /// Things the user should know (automatic choices that may be wrong, unstable steps).
     pub warnings: Vec<String>,
+    /// Whether `splats_NNNN.ply` were written (`--splats`).
+    #[serde(default)]
+    pub splats: bool,
     /// Wall-clock time of the whole command (s).
     pub wall_time_s: f64,
 }
@@ -272,7 +278,7 @@ impl Summary {
         };
         let mut text = format!(
             "simulated {} frame(s) of {} particles ({}) in {:.1} s: {steps}; dx {} m, particle \
-             volume {} m^3, {} particle-substeps held at the domain walls\nwrote {} frame PLYs, \
+             volume {} m^3, {} particle-substeps held at the domain walls\nwrote {} frame PLYs{}, \
              particles.arrow and summary.json to {}",
             self.frames.saturating_sub(1),
             self.particles_out,
@@ -282,6 +288,11 @@ impl Summary {
             short_number(self.particle_volume_m3),
             self.held_total,
             self.frames,
+            if self.splats {
+                format!(" and {} splat PLYs", self.frames)
+            } else {
+                String::new()
+            },
             out.display()
         );
         for w in &self.warnings {
@@ -296,6 +307,17 @@ pub fn frame_path(dir: &Path, frame: u32) -> PathBuf {
     dir.join(format!("frame_{frame:04}.ply"))
 }
 
+/// `DIR/splats_0007.ply`.
+pub fn splats_path(dir: &Path, frame: u32) -> PathBuf {
+    dir.join(format!("splats_{frame:04}.ply"))
+}
+
+/// Writes one frame's splats (a 3DGS PLY).
+pub fn write_splats(dir: &Path, frame: u32, g: &Gaussians) -> Result<(), SimulateError> {
+    ply::write_gaussians(&splats_path(dir, frame), g)?;
+    Ok(())
+}
+
 /// Writes one frame's positions.
 pub fn write_frame(dir: &Path, frame: u32, x: &[DVec3]) -> Result<(), SimulateError> {
     let pos: Vec<[f32; 3]> = x.iter().map(|p| p.as_vec3().to_array()).collect();
@@ -303,9 +325,10 @@ pub fn write_frame(dir: &Path, frame: u32, x: &[DVec3]) -> Result<(), SimulateEr
     Ok(())
 }
 
-/// Creates `dir` and removes `frame_NNNN.ply` files of an earlier, longer run (frames ≥
-/// `frames`), so the folder holds exactly this run's frames. Returns the files removed.
-pub fn prepare_dir(dir: &Path, frames: u32) -> Result<Vec<PathBuf>, SimulateError> {
+/// Creates `dir` and removes `frame_NNNN.ply` and `splats_NNNN.ply` files of an earlier,
+/// longer run (frames ≥ `frames`; every `splats_NNNN.ply` unless `splats`), so the folder holds
+/// exactly this run's frames. Returns the files removed.
+pub fn prepare_dir(dir: &Path, frames: u32, splats: bool) -> Result<Vec<PathBuf>, SimulateError> {
     let io = |action: &'static str| {
         move |source| SimulateError::Io {
             path: dir.to_path_buf(),
@@ -319,12 +342,14 @@ pub fn prepare_dir(dir: &Path, frames: u32) -> Result<Vec<PathBuf>, SimulateErro
         let entry = entry.map_err(io("list the output folder"))?;
         let name = entry.file_name();
         let Some(name) = name.to_str() else { continue };
-        let stale = name
-            .strip_prefix("frame_")
-            .and_then(|s| s.strip_suffix(".ply"))
-            .filter(|d| d.len() >= 4 && d.bytes().all(|b| b.is_ascii_digit()))
-            .and_then(|d| d.parse::<u64>().ok())
-            .is_some_and(|k| k >= u64::from(frames));
+        let numbered = |prefix: &str| {
+            name.strip_prefix(prefix)
+                .and_then(|s| s.strip_suffix(".ply"))
+                .filter(|d| d.len() >= 4 && d.bytes().all(|b| b.is_ascii_digit()))
+                .and_then(|d| d.parse::<u64>().ok())
+        };
+        let stale = numbered("frame_").is_some_and(|k| k >= u64::from(frames))
+            || numbered("splats_").is_some_and(|k| !splats || k >= u64::from(frames));
         if stale {
             std::fs::remove_file(entry.path()).map_err(|source| SimulateError::Io {
                 path: entry.path(),

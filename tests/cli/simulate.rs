@@ -445,14 +445,10 @@ fn gaussian_splatting_ply_input() {
     assert_eq!(read(&out.join("frame_0001.ply")).len(), 125);
 }
 
-/// A 3DGS PLY of a closed surface (a ball's splats, none inside) gets a grid from its size, is
-/// filled, and falls as a solid ball: the fillers are simulated, not written.
-#[test]
-fn a_splatted_surface_is_filled_and_falls_as_a_solid() {
-    let tmp = tempfile::tempdir().unwrap();
-    let (r, centre) = (0.1f64, DVec3::new(0.0, 0.3, 0.0));
-    // Fibonacci points 4 mm apart, each a flat splat (σ = 4 mm along the surface, 0.5 mm across
-    // it, as a 3DGS fit makes them), opacity sigmoid(3).
+/// A 3DGS PLY (ASCII) of a ball of radius `r` (m) at `centre`: Fibonacci points 4 mm apart,
+/// each a flat splat (σ = 4 mm along the surface, 0.5 mm across it, as a 3DGS fit makes them),
+/// opacity sigmoid(3); returns its path and splat count.
+fn splat_ball(dir: &Path, r: f64, centre: DVec3) -> (PathBuf, usize) {
     let n = (4.0 * std::f64::consts::PI * r * r / 1.6e-5) as usize;
     let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
     let mut text = format!("ply\nformat ascii 1.0\nelement vertex {n}\n");
@@ -476,8 +472,18 @@ fn a_splatted_surface_is_filled_and_falls_as_a_solid() {
             p.x, p.y, p.z, q.w, q.x, q.y, q.z
         );
     }
-    let ply = tmp.path().join("ball.ply");
+    let ply = dir.join("ball.ply");
     std::fs::write(&ply, text).unwrap();
+    (ply, n)
+}
+
+/// A 3DGS PLY of a closed surface (a ball's splats, none inside) gets a grid from its size, is
+/// filled, and falls as a solid ball: the fillers are simulated, not written.
+#[test]
+fn a_splatted_surface_is_filled_and_falls_as_a_solid() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (r, centre) = (0.1f64, DVec3::new(0.0, 0.3, 0.0));
+    let (ply, n) = splat_ball(tmp.path(), r, centre);
     let yaml = "material: {family: elastic, youngs_modulus: 2.0e4, poisson_ratio: 0.3, density: 1000}\n\
                 frame_dt: 0.041666666666666664\n\
                 boundaries: [{kind: ground, y: 0.0}]\n";
@@ -526,6 +532,68 @@ fn a_splatted_surface_is_filled_and_falls_as_a_solid() {
     let s = simulate::run(&ply, &sim, 1, &tmp.path().join("shell"), &quiet()).unwrap();
     assert_eq!((s.fill_particles, s.fill.as_str()), (0, "off (file)"));
     assert!(s.total_mass_kg < 0.5 * ball, "{}", s.total_mass_kg);
+}
+
+/// With `--splats` the 3DGS input is written every frame as splats carried by the motion:
+/// frame 0 is the input, the centres are the frame's positions, and a ball in free fall (no
+/// deformation) keeps every splat's shape. A plain point cloud is refused with `--splats`, and
+/// a later run without it removes the splat files.
+#[test]
+fn splats_follow_the_particles() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (ply, n) = splat_ball(tmp.path(), 0.1, DVec3::new(0.0, 0.3, 0.0));
+    let yaml = "material: {family: elastic, youngs_modulus: 2.0e4, poisson_ratio: 0.3, density: 1000}\n\
+                frame_dt: 0.041666666666666664\n";
+    let sim = write_sim(tmp.path(), yaml);
+    let out = tmp.path().join("out");
+    let opts = simulate::Options { splats: true };
+    let s = simulate::run_with(&ply, &sim, 3, &out, &quiet(), opts).unwrap();
+    assert!(s.splats && s.report(&out).contains("3 splat PLYs"));
+    let input = ply::read_gaussians(&ply).unwrap();
+    assert_eq!(
+        ply::read_gaussians(&out.join("splats_0000.ply")).unwrap(),
+        input
+    );
+    let cov = |g: &pipe::scene::gaussians::Gaussians, i: usize| {
+        let [w, x, y, z] = g.rotation[i].map(f64::from);
+        let q = glam::DQuat::from_xyzw(x, y, z, w).normalize();
+        let r = glam::DMat3::from_quat(q);
+        let s2 = DVec3::from_array(g.log_scale[i].map(|v| (2.0 * f64::from(v)).exp()));
+        r * glam::DMat3::from_diagonal(s2) * r.transpose()
+    };
+    for k in 1..3 {
+        let g = ply::read_gaussians(&out.join(format!("splats_{k:04}.ply"))).unwrap();
+        let x = read(&out.join(format!("frame_{k:04}.ply")));
+        assert_eq!(g.len(), n);
+        for (i, xi) in x.iter().enumerate() {
+            let p = DVec3::from_array(g.position[i].map(f64::from));
+            assert!((p - *xi).length() < 1e-6, "{k} {i}");
+            // Free fall: F = I to within the solver's noise, so Σ is unchanged.
+            let (a, b) = (cov(&g, i), cov(&input, i));
+            let err = (a - b)
+                .to_cols_array()
+                .iter()
+                .map(|e| e.abs())
+                .fold(0.0, f64::max);
+            assert!(err < 1e-2 * 0.004f64.powi(2), "{k} {i}: {a:?} vs {b:?}");
+        }
+        assert_eq!(g.opacity_logit, input.opacity_logit);
+        assert_eq!(g.sh, input.sh);
+    }
+    // A plain point cloud has no splats.
+    let cloud = write_ply(tmp.path(), "cloud.ply", &lattice(4, 0.01, [0.0, 0.5, 0.0]));
+    let e =
+        simulate::run_with(&cloud, &sim, 2, &tmp.path().join("o2"), &quiet(), opts).unwrap_err();
+    assert!(matches!(e, SimulateError::NotSplats { .. }), "{e}");
+    assert!(
+        e.to_string()
+            .contains("cloud.ply: --splats needs a 3DGS PLY"),
+        "{e}"
+    );
+    // Without `--splats`, the folder keeps no splat file of the earlier run.
+    let s = simulate::run(&ply, &sim, 2, &out, &quiet()).unwrap();
+    assert!(!s.splats);
+    assert!(!out.join("splats_0000.ply").exists() && !out.join("splats_0002.ply").exists());
 }
 
 /// Forces and impulses reach the particles they select, and the automatic domain covers a
