@@ -8,6 +8,7 @@ use std::sync::OnceLock;
 
 use glam::{DMat3, DQuat, DVec3};
 use pipe_mpm::svd::{polar_rotation, svd3};
+use rayon::prelude::*;
 
 use super::gaussians::{Gaussians, sh_coeffs};
 
@@ -20,21 +21,21 @@ pub fn deform(g: &Gaussians, x: &[DVec3], f: &[DMat3]) -> Gaussians {
         x.len() == g.len() && f.len() == g.len(),
         "one position and one F per Gaussian"
     );
-    let k = sh_coeffs(g.sh_degree);
+    let k = 3 * sh_coeffs(g.sh_degree);
     let mut out = g.clone();
-    for i in 0..g.len() {
-        out.position[i] = x[i].as_vec3().to_array();
-        let (log_scale, rotation) = deform_shape(g.log_scale[i], g.rotation[i], &f[i]);
-        out.log_scale[i] = log_scale;
-        out.rotation[i] = rotation;
-        if g.sh_degree > 0 {
-            rotate_sh(
-                g.sh_degree,
-                &mut out.sh[i * 3 * k..(i + 1) * 3 * k],
-                &polar_rotation(&f[i]),
-            );
-        }
-    }
+    out.position = x.iter().map(|p| p.as_vec3().to_array()).collect();
+    out.log_scale
+        .par_iter_mut()
+        .zip(out.rotation.par_iter_mut())
+        .zip(out.sh.par_chunks_mut(k))
+        .zip(f.par_iter())
+        .with_min_len(1024)
+        .for_each(|(((log_scale, rotation), sh), f)| {
+            (*log_scale, *rotation) = deform_shape(*log_scale, *rotation, f);
+            if g.sh_degree > 0 {
+                rotate_sh(g.sh_degree, sh, &polar_rotation(f));
+            }
+        });
     out
 }
 
@@ -156,25 +157,31 @@ fn invert(a: &mut [f64], m: usize) -> Option<Vec<f64>> {
 pub fn rotate_sh(degree: u8, sh: &mut [f32], r: &DMat3) {
     let projectors = band_projectors();
     let rt = r.transpose();
-    for l in 1..=usize::from(degree).min(3) {
-        let (dirs, p) = &projectors[l - 1];
-        let m = 2 * l + 1;
-        let turned: Vec<f64> = dirs.iter().flat_map(|&d| band(l, rt * d)).collect();
+    let degree = usize::from(degree).min(3);
+    // Every band is sampled at the same directions: evaluate the turned basis once.
+    let turned: Vec<[f64; 16]> = projectors[0]
+        .0
+        .iter()
+        .map(|&d| pipe_render::sh::basis(3, (rt * d).to_array()))
+        .collect();
+    for l in 1..=degree {
+        let p = &projectors[l - 1].1;
+        let (m, first) = (2 * l + 1, l * l);
         // t = P B(rᵀD), m × m.
         let t: Vec<f64> = (0..m * m)
             .map(|e| {
                 let (i, j) = (e / m, e % m);
                 (0..SAMPLES)
-                    .map(|k| p[i * SAMPLES + k] * turned[k * m + j])
+                    .map(|k| p[i * SAMPLES + k] * turned[k][first + j])
                     .sum()
             })
             .collect();
         for ch in 0..3 {
             let c: Vec<f64> = (0..m)
-                .map(|j| f64::from(sh[(l * l + j) * 3 + ch]))
+                .map(|j| f64::from(sh[(first + j) * 3 + ch]))
                 .collect();
             for i in 0..m {
-                sh[(l * l + i) * 3 + ch] = (0..m).map(|j| t[i * m + j] * c[j]).sum::<f64>() as f32;
+                sh[(first + i) * 3 + ch] = (0..m).map(|j| t[i * m + j] * c[j]).sum::<f64>() as f32;
             }
         }
     }
