@@ -76,5 +76,7 @@ pub use models::{
 };
 pub use p2g::Node;
 pub use sim::{RunReport, SimConfig, Simulator};
-pub use state::{FamilyGrad, Material, MaterialGrad, State, StateGrad, lame, lame_grad_to_e_nu};
+pub use state::{
+    FamilyGrad, FamilyParams, Material, MaterialGrad, State, StateGrad, lame, lame_grad_to_e_nu,
+};
 pub use timestep::{StableStep, StepLimits, stable_step, stable_step_at_speed, substeps_per_frame};

@@ -119,6 +119,11 @@ impl Order {
             volume: self.gather(&m.volume),
             mu: self.gather(&m.mu),
             lam: self.gather(&m.lam),
+            family: if m.family.is_empty() {
+                Vec::new()
+            } else {
+                self.gather(&m.family)
+            },
         }
     }
 
@@ -151,6 +156,11 @@ impl Order {
             mu: self.unsorted(&sorted.mu),
             lam: self.unsorted(&sorted.lam),
             family: sorted.family,
+            family_per_particle: if sorted.family_per_particle.is_empty() {
+                Vec::new()
+            } else {
+                self.unsorted(&sorted.family_per_particle)
+            },
         }
     }
 

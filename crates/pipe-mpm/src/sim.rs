@@ -13,11 +13,11 @@ use crate::g2p::g2p;
 use crate::grid::{Aabb, GridSpec, NodeBox};
 use crate::grid_update::{NodeVel, grid_update};
 use crate::isa::{Isa, Lanes, WithLanes};
-use crate::models::Constitutive;
+use crate::models::{Constitutive, particle_model};
 use crate::order::Order;
 use crate::p2g::{Node, P2gIn, p2g};
 use crate::scatter::Bins;
-use crate::state::{Material, State};
+use crate::state::{FamilyParams, Material, State};
 
 /// Scene-level settings (SI units).
 #[derive(Debug, Clone, PartialEq)]
@@ -110,6 +110,8 @@ struct StressChunk<'a, M> {
     c: &'a [DMat3],
     mu: &'a [f64],
     lam: &'a [f64],
+    /// Per-particle family scalars (empty: the model's own).
+    family: &'a [FamilyParams],
     f: FIo<'a>,
     tau: &'a mut [DMat3],
     /// Written when [`Constitutive::STRESS_AUX`] (else empty).
@@ -146,6 +148,7 @@ impl<M: Constitutive> WithLanes for StressChunk<'_, M> {
             c,
             mu,
             lam,
+            family,
             mut f,
             tau,
             aux,
@@ -156,6 +159,7 @@ impl<M: Constitutive> WithLanes for StressChunk<'_, M> {
                 FIo::InPlace(io) => io[p],
                 FIo::From(old, _) | FIo::Read(old) => old[p],
             };
+            let model = particle_model(model, family, p);
             let ft = model.predict(&c[p], &f0, dt);
             let (f_new, t_new, a) = model.update_with_aux(&ft, &c[p], mu[p], lam[p], dt);
             *tau = t_new;
@@ -171,6 +175,16 @@ impl<M: Constitutive> WithLanes for StressChunk<'_, M> {
             }
         }
         bad
+    }
+}
+
+/// The part `r` of per-particle family scalars (empty stays empty: the model's own).
+#[inline]
+fn family_chunk(family: &[FamilyParams], r: std::ops::Range<usize>) -> &[FamilyParams] {
+    if family.is_empty() {
+        family
+    } else {
+        &family[r]
     }
 }
 
@@ -273,6 +287,35 @@ impl<M: Constitutive> Simulator<M> {
     pub fn validate(&self, state: &State, mat: &Material) -> Result<(), MpmError> {
         state.validate()?;
         mat.validate(state.len())?;
+        if !mat.family.is_empty() {
+            if !M::HAS_FAMILY_PARAMS {
+                return Err(MpmError::InvalidParameter {
+                    field: "family",
+                    value: mat.family.len() as f64,
+                    reason: "per-particle family parameters given to a model without any",
+                });
+            }
+            for (index, p) in mat.family.iter().enumerate() {
+                self.model.with_params(p).validate().map_err(|e| match e {
+                    MpmError::InvalidParameter {
+                        field,
+                        value,
+                        reason,
+                    } => MpmError::InvalidParticleParameter {
+                        field,
+                        index,
+                        value,
+                        reason,
+                    },
+                    MpmError::NonFiniteInput { field, value, .. } => MpmError::NonFiniteInput {
+                        field,
+                        index,
+                        value,
+                    },
+                    e => e,
+                })?;
+            }
+        }
         self.config
             .forces
             .iter()
@@ -333,7 +376,8 @@ impl<M: Constitutive> Simulator<M> {
                             dt,
                             c: &c_old[r.clone()],
                             mu: &mat.mu[r.clone()],
-                            lam: &mat.lam[r],
+                            lam: &mat.lam[r.clone()],
+                            family: family_chunk(&mat.family, r),
                             f,
                             tau,
                             aux,
@@ -374,6 +418,7 @@ impl<M: Constitutive> Simulator<M> {
                     c: &s.c[r.clone()],
                     mu: &mat.mu[r.clone()],
                     lam: &mat.lam[r.clone()],
+                    family: family_chunk(&mat.family, r.clone()),
                     f: FIo::Read(&s.f[r]),
                     tau,
                     aux,

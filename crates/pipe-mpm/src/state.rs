@@ -125,6 +125,10 @@ pub struct Material {
     pub mu: Vec<f64>,
     /// Lamé λ (Pa); Newtonian fluid: `κ − 2μ/3` (Pa).
     pub lam: Vec<f64>,
+    /// Per-particle family scalars (yield stress, viscosity, friction), so that a learned field
+    /// can drive them; empty: every particle takes the model's own
+    /// ([`crate::Constitutive::with_params`]).
+    pub family: Vec<FamilyParams>,
 }
 
 impl Material {
@@ -144,6 +148,7 @@ impl Material {
             volume: vec![volume; n],
             mu: vec![mu; n],
             lam: vec![lam; n],
+            family: Vec::new(),
         })
     }
 
@@ -194,6 +199,7 @@ impl Material {
             volume,
             mu,
             lam,
+            family: Vec::new(),
         };
         out.validate(n)?;
         Ok(out)
@@ -216,6 +222,7 @@ impl Material {
             volume: vec![volume; n],
             mu: vec![viscosity; n],
             lam: vec![bulk - 2.0 / 3.0 * viscosity; n],
+            family: Vec::new(),
         })
     }
 
@@ -233,6 +240,13 @@ impl Material {
     pub fn validate(&self, n: usize) -> Result<(), MpmError> {
         if n == 0 || self.mass.is_empty() {
             return Err(MpmError::EmptyParticles);
+        }
+        if !self.family.is_empty() && self.family.len() != n {
+            return Err(MpmError::LengthMismatch {
+                field: "family",
+                len: self.family.len(),
+                expected: n,
+            });
         }
         for (field, len) in [
             ("mass", self.mass.len()),
@@ -428,7 +442,19 @@ impl StateGrad {
     }
 }
 
-/// Gradients of the family's global scalar parameters (zero for parameters a family lacks).
+/// A particle's family scalars ([`Material::family`]); each model reads its own and ignores the
+/// rest.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct FamilyParams {
+    /// Yield stress τ_Y (Pa), von Mises.
+    pub yield_stress: f64,
+    /// Perzyna viscosity η (Pa·s), von Mises.
+    pub eta: f64,
+    /// Friction coefficient α, Drucker–Prager.
+    pub friction_alpha: f64,
+}
+
+/// Gradients of the family's scalar parameters (zero for parameters a family lacks).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct FamilyGrad {
     /// `∂L/∂τ_Y` (per Pa), von Mises.
@@ -463,8 +489,11 @@ pub struct MaterialGrad {
     pub mu: Vec<f64>,
     /// `∂L/∂λ_p` (per Pa).
     pub lam: Vec<f64>,
-    /// Family parameters.
+    /// Family parameters, summed over the particles (the gradient of the model's own scalars).
     pub family: FamilyGrad,
+    /// Family parameters per particle (the gradient of [`Material::family`]); empty for models
+    /// without family scalars.
+    pub family_per_particle: Vec<FamilyGrad>,
 }
 
 impl MaterialGrad {
@@ -476,6 +505,7 @@ impl MaterialGrad {
             mu: vec![0.0; n],
             lam: vec![0.0; n],
             family: FamilyGrad::default(),
+            family_per_particle: Vec::new(),
         }
     }
 

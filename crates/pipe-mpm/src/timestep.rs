@@ -139,7 +139,7 @@ pub fn stable_step_at_speed<M: Constitutive>(
     for p in 0..mat.len() {
         let rho = mat.mass[p] / mat.volume[p];
         cmax = cmax.max((model.wave_modulus(mat.mu[p], mat.lam[p]).max(0.0) / rho).sqrt());
-        let eta = model.viscosity(mat.mu[p]);
+        let eta = crate::models::particle_model(model, &mat.family, p).viscosity(mat.mu[p]);
         if eta > 0.0 {
             visc = visc.min(limits.viscous * rho * dx * dx / eta);
         }

@@ -67,6 +67,7 @@ fn scene(fluid: bool) -> (SimConfig, State, Material, [Vec<DVec3>; 2], [Vec<DMat
         volume: vec![vol; n],
         mu: (0..n).map(|_| 4000.0 * (1.0 + 0.1 * rng.sym())).collect(),
         lam: (0..n).map(|_| 6000.0 * (1.0 + 0.1 * rng.sym())).collect(),
+        family: Vec::new(),
     };
     let mut cfg = SimConfig::new(Aabb::new(DVec3::ZERO, DVec3::ONE), dx, 4e-4);
     cfg.boundaries.colliders = vec![

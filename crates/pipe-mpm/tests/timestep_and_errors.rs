@@ -99,6 +99,7 @@ fn invalid_inputs_name_field_and_value() {
         volume: vec![],
         mu: vec![],
         lam: vec![],
+        family: Vec::new(),
     };
     assert_eq!(
         sim.run(&mut empty, &mat, 0.0, 1).unwrap_err(),
@@ -198,6 +199,7 @@ fn per_particle_e_nu_errors_name_the_particle_and_chain_rule_sums() {
         mu: vec![1.5, -0.5],
         lam: vec![0.25, 2.0],
         family: Default::default(),
+        family_per_particle: Vec::new(),
     };
     let (ge, gn) = g.e_nu_per_particle(&[1e5, 1e5], &[0.3, 0.3]);
     let (se, sn) = g.e_nu(1e5, 0.3);

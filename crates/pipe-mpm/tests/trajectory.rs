@@ -72,6 +72,7 @@ fn run_scene<M: Constitutive>(scene: &str, model: M, frames: &[usize]) -> Vec<(u
         volume: vec![vol; n],
         mu: vec![f("lame_mu"); n],
         lam: vec![f("lame_lambda"); n],
+        family: Vec::new(),
     };
     let dom = &p["domain"];
     let mut cfg = SimConfig::new(

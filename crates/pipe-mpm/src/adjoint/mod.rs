@@ -126,6 +126,7 @@ impl<M: Constitutive> WithLanes for ParticleAdjoint<'_, M> {
                     extra,
                 },
             );
+            let model = &crate::models::particle_model(model, &mat.family, p);
             let f_tmp = model.predict(c, f, dt);
             let (mu, lam) = (mat.mu[p], mat.lam[p]);
             let aux = if M::STRESS_AUX { w.aux[p] } else { 0.0 };
@@ -346,6 +347,11 @@ impl<M: Constitutive> Simulator<M> {
         // Family gradients are summed in particle order (bit-identical for any thread count).
         if M::HAS_FAMILY_PARAMS {
             gmat.family = aw.family.iter().fold(gmat.family, |acc, &f| acc + f);
+            gmat.family_per_particle
+                .resize(s.len(), FamilyGrad::default());
+            for (acc, &f) in gmat.family_per_particle.iter_mut().zip(&aw.family) {
+                *acc = *acc + f;
+            }
         }
         non_finite
     }

@@ -10,7 +10,7 @@ use glam::{DMat3, DVec3};
 use super::hencky::{compose, compose_adjoint, f_tmp_adjoint};
 use super::{Constitutive, ModelGrad, SIGMA_MIN, check_param};
 use crate::error::MpmError;
-use crate::state::FamilyGrad;
+use crate::state::{FamilyGrad, FamilyParams};
 use crate::svd::svd3;
 
 /// Drucker–Prager plasticity with friction coefficient α.
@@ -149,6 +149,20 @@ impl DruckerPrager {
 impl Constitutive for DruckerPrager {
     const NAME: &'static str = "drucker_prager";
     const HAS_FAMILY_PARAMS: bool = true;
+
+    #[inline(always)]
+    fn with_params(&self, p: &FamilyParams) -> Self {
+        Self {
+            alpha: p.friction_alpha,
+        }
+    }
+
+    fn params(&self) -> FamilyParams {
+        FamilyParams {
+            friction_alpha: self.alpha,
+            ..FamilyParams::default()
+        }
+    }
 
     fn update(&self, f_tmp: &DMat3, _c: &DMat3, mu: f64, lam: f64, _dt: f64) -> (DMat3, DMat3) {
         let d = svd3(f_tmp);

@@ -7,7 +7,7 @@
 use glam::DMat3;
 
 use crate::error::MpmError;
-use crate::state::FamilyGrad;
+use crate::state::{FamilyGrad, FamilyParams};
 
 mod drucker_prager;
 mod fixed_corotated;
@@ -40,6 +40,17 @@ pub struct ModelGrad {
     pub family: FamilyGrad,
 }
 
+/// The model of particle `p`: `model` with the particle's family scalars when `family` holds
+/// them (and the model has any), else `model` itself.
+#[inline(always)]
+pub(crate) fn particle_model<M: Constitutive>(model: &M, family: &[FamilyParams], p: usize) -> M {
+    if M::HAS_FAMILY_PARAMS && !family.is_empty() {
+        model.with_params(&family[p])
+    } else {
+        model.clone()
+    }
+}
+
 /// A constitutive law: strain prediction, return mapping and Kirchhoff stress, with adjoints.
 pub trait Constitutive: Send + Sync + std::fmt::Debug + Clone {
     /// Short name (`"neo_hookean"`, ...).
@@ -48,6 +59,19 @@ pub trait Constitutive: Send + Sync + std::fmt::Debug + Clone {
     /// Whether [`ModelGrad::family`] can be non-zero (the model has family scalars such as a
     /// yield stress); when false the backward pass neither stores nor sums it.
     const HAS_FAMILY_PARAMS: bool = false;
+
+    /// This model with a particle's family scalars `p` in place of its own
+    /// ([`crate::Material::family`]); models without family scalars return themselves.
+    #[inline(always)]
+    fn with_params(&self, p: &FamilyParams) -> Self {
+        let _ = p;
+        self.clone()
+    }
+
+    /// The model's own family scalars (0 for those it lacks).
+    fn params(&self) -> FamilyParams {
+        FamilyParams::default()
+    }
 
     /// Predicted deformation `F_tmp = (I + dt C) F` (dt in s, C in 1/s).
     #[inline(always)]

@@ -10,7 +10,7 @@ use glam::{DMat3, DVec3};
 use super::hencky::{compose, compose_adjoint, f_tmp_adjoint};
 use super::{Constitutive, ModelGrad, SIGMA_MIN, check_param};
 use crate::error::MpmError;
-use crate::state::FamilyGrad;
+use crate::state::{FamilyGrad, FamilyParams};
 use crate::svd::svd3;
 
 /// von Mises plasticity with yield stress τ_Y (Pa) and viscosity η (Pa·s; 0 = rate independent).
@@ -138,6 +138,22 @@ impl VonMises {
 impl Constitutive for VonMises {
     const NAME: &'static str = "von_mises";
     const HAS_FAMILY_PARAMS: bool = true;
+
+    #[inline(always)]
+    fn with_params(&self, p: &FamilyParams) -> Self {
+        Self {
+            yield_stress: p.yield_stress,
+            eta: p.eta,
+        }
+    }
+
+    fn params(&self) -> FamilyParams {
+        FamilyParams {
+            yield_stress: self.yield_stress,
+            eta: self.eta,
+            ..FamilyParams::default()
+        }
+    }
 
     fn update(&self, f_tmp: &DMat3, _c: &DMat3, mu: f64, lam: f64, dt: f64) -> (DMat3, DMat3) {
         let d = svd3(f_tmp);

@@ -41,6 +41,7 @@ pub fn load(name: &str) -> Fixture {
         volume: vec![p_vol; n],
         mu: f64s(&ini["mu_p"]),
         lam: f64s(&ini["lam_p"]),
+        family: Vec::new(),
     };
     let g = &json["grads"];
     let grads = StateGrad {
