@@ -252,3 +252,24 @@ fn bad_per_particle_scalars_are_refused_naming_the_particle() {
         "{e}"
     );
 }
+
+/// The viscous step limit follows the most viscous particle, not the model's own η.
+#[test]
+fn the_viscous_limit_follows_per_particle_viscosity() {
+    let (cfg, s, mut mat, _, _) = scene();
+    let model = VonMises {
+        yield_stress: 60.0,
+        eta: 2.0,
+    };
+    let limits = pipe_mpm::StepLimits::default();
+    let own = pipe_mpm::stable_step_at_speed(&model, &mat, 0.0, cfg.dx, limits);
+    mat.family = vec![model.params(); s.len()];
+    mat.family[9].eta = 2000.0;
+    let one = pipe_mpm::stable_step_at_speed(&model, &mat, 0.0, cfg.dx, limits);
+    assert!(
+        (one.viscous * 1000.0 / own.viscous - 1.0).abs() < 1e-12,
+        "{} vs {}",
+        one.viscous,
+        own.viscous
+    );
+}
