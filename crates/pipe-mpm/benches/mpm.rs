@@ -21,7 +21,8 @@
 //!   `MPM_SNAPSHOTS` sets [`BackwardOptions::snapshots`] (default
 //!   [`pipe_mpm::adjoint::SEGMENT_SNAPSHOTS`]); the loss (mean y at every frame) is seeded in
 //!   place ([`Simulator::backward_into`]).
-//! * `MPM_SWEEP_THREADS` (default 2): threads of the `sweep_fcr` particle-count sweep.
+//! * `MPM_SWEEP_THREADS` (default 2): threads of the `sweep_fcr` and `sweep_nh`
+//!   particle-count sweeps.
 
 #[path = "anchor_cube.rs"]
 mod anchor_cube;
@@ -254,6 +255,13 @@ fn nh_100k_g64(b: Bencher, threads: usize) {
 fn sweep_fcr(b: Bencher, n: usize) {
     let g = (2.4 * (n as f64 / 8.0).cbrt()).round() as usize;
     forward(b, FixedCorotated, n, g, env_usize("MPM_SWEEP_THREADS", 2));
+}
+
+/// [`sweep_fcr`] for neo-Hookean.
+#[divan::bench(args = [10_000, 30_000, 100_000, 300_000, 1_000_000], sample_count = 3, sample_size = 1)]
+fn sweep_nh(b: Bencher, n: usize) {
+    let g = (2.4 * (n as f64 / 8.0).cbrt()).round() as usize;
+    forward(b, NeoHookean, n, g, env_usize("MPM_SWEEP_THREADS", 2));
 }
 
 /// Forward (with checkpoints) + backward over 8 substeps, fcr, N = 20k, G = 32; items = particle-substeps.
