@@ -153,7 +153,7 @@ fn invert(a: &mut [f64], m: usize) -> Option<Vec<f64>> {
 /// Rotates the SH coefficients `sh` (`[coeff k][channel]`, degree `degree`) by `r`: the new
 /// function at `d` equals the old one at `rᵀd`. Each band `l ≥ 1` is a rotation-invariant
 /// space, so the turned band is again a band-`l` function, whose coefficients its values at
-/// fixed directions `D` give: `c' = P B(rᵀD) c` ([`band_projectors`]).
+/// fixed directions `D` give: `c' = P B(rᵀD) c` (`band_projectors`).
 pub fn rotate_sh(degree: u8, sh: &mut [f32], r: &DMat3) {
     let projectors = band_projectors();
     let rt = r.transpose();
