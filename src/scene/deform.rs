@@ -159,27 +159,28 @@ pub fn rotate_sh(degree: u8, sh: &mut [f32], r: &DMat3) {
     let rt = r.transpose();
     let degree = usize::from(degree).min(3);
     // Every band is sampled at the same directions: evaluate the turned basis once.
-    let turned: Vec<[f64; 16]> = projectors[0]
-        .0
-        .iter()
-        .map(|&d| pipe_render::sh::basis(3, (rt * d).to_array()))
-        .collect();
+    let dirs = &projectors[0].0;
+    let turned: [[f64; 16]; SAMPLES] =
+        std::array::from_fn(|k| pipe_render::sh::basis(3, (rt * dirs[k]).to_array()));
     for l in 1..=degree {
         let p = &projectors[l - 1].1;
         let (m, first) = (2 * l + 1, l * l);
-        // t = P B(rᵀD), m × m.
-        let t: Vec<f64> = (0..m * m)
-            .map(|e| {
-                let (i, j) = (e / m, e % m);
-                (0..SAMPLES)
-                    .map(|k| p[i * SAMPLES + k] * turned[k][first + j])
-                    .sum()
-            })
-            .collect();
+        // t = P B(rᵀD), m × m (at most 7 × 7).
+        let mut t = [0.0; 49];
+        for (e, te) in t.iter_mut().enumerate().take(m * m) {
+            let (i, j) = (e / m, e % m);
+            *te = (0..SAMPLES)
+                .map(|k| p[i * SAMPLES + k] * turned[k][first + j])
+                .sum();
+        }
         for ch in 0..3 {
-            let c: Vec<f64> = (0..m)
-                .map(|j| f64::from(sh[(first + j) * 3 + ch]))
-                .collect();
+            let c: [f64; 7] = std::array::from_fn(|j| {
+                if j < m {
+                    f64::from(sh[(first + j) * 3 + ch])
+                } else {
+                    0.0
+                }
+            });
             for i in 0..m {
                 sh[(first + i) * 3 + ch] = (0..m).map(|j| t[i * m + j] * c[j]).sum::<f64>() as f32;
             }

@@ -251,16 +251,22 @@ pub fn run_with(
         .iter()
         .map(|p| DVec3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])))
         .collect();
-    let splats = read_splats(particles, n)?;
-    let gaussians = if options.splats {
-        let g = ply::read_gaussians(particles).map_err(|source| SimulateError::NotSplats {
-            path: particles.to_path_buf(),
-            source: Box::new(source),
-        })?;
-        Some(g)
-    } else {
-        None
+    // The 3DGS splats, read once: for the interior filling, and written with `--splats`.
+    let gaussians = match ply::read_gaussians(particles) {
+        Ok(g) => Some(g),
+        Err(source @ PlyError::MissingProperty { .. }) if options.splats => {
+            return Err(SimulateError::NotSplats {
+                path: particles.to_path_buf(),
+                source: Box::new(source),
+            });
+        }
+        Err(PlyError::MissingProperty { .. }) => None,
+        Err(e) => return Err(e.into()),
     };
+    let splats = gaussians
+        .as_ref()
+        .map_or_else(Vec::new, |g| fill_splats(g, n));
+    let gaussians = gaussians.filter(|_| options.splats);
     let setup = setup::setup(&spec, particles, (&x0, &splats), frames)?;
     let n_all = n + setup.fill.len();
     let mut mat = spec
@@ -346,18 +352,12 @@ pub fn run_with(
     Ok(summary)
 }
 
-/// The splats of a 3DGS PLY (`scale_*`, `rot_*`, `opacity` beside `x y z`), for the interior
-/// filling; empty for a plain point cloud. Records that make no splat (a zero rotation) are
-/// skipped.
-fn read_splats(particles: &Path, n: usize) -> Result<Vec<Splat>, SimulateError> {
-    let g = match ply::read_gaussians(particles) {
-        Ok(g) => g,
-        Err(PlyError::MissingProperty { .. }) => return Ok(Vec::new()),
-        Err(e) => return Err(e.into()),
-    };
+/// The splats of a 3DGS PLY's `n` Gaussians (`scale_*`, `rot_*`, `opacity` beside `x y z`),
+/// for the interior filling. Records that make no splat (a zero rotation) are skipped.
+fn fill_splats(g: &Gaussians, n: usize) -> Vec<Splat> {
     debug_assert_eq!(g.len(), n);
     let f = |v: [f32; 3]| v.map(f64::from);
-    Ok((0..g.len())
+    (0..g.len())
         .filter_map(|i| {
             Splat::from_3dgs(
                 DVec3::from_array(f(g.position[i])),
@@ -366,19 +366,22 @@ fn read_splats(particles: &Path, n: usize) -> Result<Vec<Splat>, SimulateError> 
                 f64::from(g.opacity_logit[i]),
             )
         })
-        .collect())
+        .collect()
 }
 
 /// The deformation gradients the splats follow: the particles' `F`, except for the Newtonian
 /// fluid, whose `F` holds only the volume ratio (`diag(J, 1, 1)`): its splats swell or shrink
 /// evenly, `J^(1/3) I`.
-fn splat_deformation(family: crate::pipeline::spec::MaterialFamily, f: &[DMat3]) -> Vec<DMat3> {
+fn splat_deformation(
+    family: crate::pipeline::spec::MaterialFamily,
+    f: &[DMat3],
+) -> std::borrow::Cow<'_, [DMat3]> {
     match family {
         crate::pipeline::spec::MaterialFamily::Newtonian => f
             .iter()
             .map(|f| DMat3::from_diagonal(DVec3::splat(f.x_axis.x.max(0.0).cbrt())))
             .collect(),
-        _ => f.to_vec(),
+        _ => f.into(),
     }
 }
 

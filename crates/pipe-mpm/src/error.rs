@@ -80,3 +80,28 @@ pub enum MpmError {
     #[error("gradient input mismatch: {0}")]
     GradientMismatch(&'static str),
 }
+
+impl MpmError {
+    /// This error of a scalar check, said of particle `index`: an invalid or non-finite value
+    /// names the particle; other errors are unchanged.
+    pub(crate) fn at_particle(self, index: usize) -> Self {
+        match self {
+            MpmError::InvalidParameter {
+                field,
+                value,
+                reason,
+            } => MpmError::InvalidParticleParameter {
+                field,
+                index,
+                value,
+                reason,
+            },
+            MpmError::NonFiniteInput { field, value, .. } => MpmError::NonFiniteInput {
+                field,
+                index,
+                value,
+            },
+            other => other,
+        }
+    }
+}

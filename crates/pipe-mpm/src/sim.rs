@@ -296,24 +296,10 @@ impl<M: Constitutive> Simulator<M> {
                 });
             }
             for (index, p) in mat.family.iter().enumerate() {
-                self.model.with_params(p).validate().map_err(|e| match e {
-                    MpmError::InvalidParameter {
-                        field,
-                        value,
-                        reason,
-                    } => MpmError::InvalidParticleParameter {
-                        field,
-                        index,
-                        value,
-                        reason,
-                    },
-                    MpmError::NonFiniteInput { field, value, .. } => MpmError::NonFiniteInput {
-                        field,
-                        index,
-                        value,
-                    },
-                    e => e,
-                })?;
+                self.model
+                    .with_params(p)
+                    .validate()
+                    .map_err(|e| e.at_particle(index))?;
             }
         }
         self.config

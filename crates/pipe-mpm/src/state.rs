@@ -173,24 +173,7 @@ impl Material {
         let mut mu = Vec::with_capacity(n);
         let mut lam = Vec::with_capacity(n);
         for i in 0..n {
-            let (m, l) = lame(e[i], nu[i]).map_err(|err| match err {
-                MpmError::InvalidParameter {
-                    field,
-                    value,
-                    reason,
-                } => MpmError::InvalidParticleParameter {
-                    field,
-                    index: i,
-                    value,
-                    reason,
-                },
-                MpmError::NonFiniteInput { field, value, .. } => MpmError::NonFiniteInput {
-                    field,
-                    index: i,
-                    value,
-                },
-                other => other,
-            })?;
+            let (m, l) = lame(e[i], nu[i]).map_err(|err| err.at_particle(i))?;
             mu.push(m);
             lam.push(l);
         }

@@ -19,6 +19,10 @@ use pipe_mpm::{
 };
 use serde_json::Value;
 
+mod reference;
+
+use reference::{arr3, dir, params, read_ply};
+
 /// Observed positions: `(frame, positions)` per observed frame boundary.
 type Observed = Vec<(usize, Vec<DVec3>)>;
 
@@ -199,50 +203,6 @@ fn initial_velocity_then_young_modulus_from_trajectories() {
     assert!((e / e_true - 1.0).abs() < 0.02, "E {e} vs {e_true}");
 }
 
-fn dir(scene: &str) -> String {
-    format!(
-        "{}/tests/fixtures/trajectories/{scene}",
-        env!("CARGO_MANIFEST_DIR")
-    )
-}
-
-fn params(scene: &str) -> Value {
-    serde_json::from_str(&std::fs::read_to_string(format!("{}/params.json", dir(scene))).unwrap())
-        .unwrap()
-}
-
-fn v3(v: &Value) -> DVec3 {
-    DVec3::new(
-        v[0].as_f64().unwrap(),
-        v[1].as_f64().unwrap(),
-        v[2].as_f64().unwrap(),
-    )
-}
-
-/// Binary little-endian PLY with exactly `float x, y, z` per vertex.
-fn read_ply(path: &str) -> Vec<DVec3> {
-    let bytes = std::fs::read(path).unwrap();
-    let end = b"end_header\n";
-    let pos = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
-    let header = std::str::from_utf8(&bytes[..pos]).unwrap();
-    let n: usize = header
-        .lines()
-        .find_map(|l| l.strip_prefix("element vertex "))
-        .unwrap()
-        .trim()
-        .parse()
-        .unwrap();
-    let data = &bytes[pos..];
-    let f = |i: usize| {
-        f64::from(f32::from_le_bytes(
-            data[4 * i..4 * i + 4].try_into().unwrap(),
-        ))
-    };
-    (0..n)
-        .map(|p| DVec3::new(f(3 * p), f(3 * p + 1), f(3 * p + 2)))
-        .collect()
-}
-
 /// A PAC-NeRF dataset scene as its simulator ran it (domain, dx, 200 substeps per frame, sticky
 /// ground at y = 0), learning the scalar that `build` and `d_log` stand for; returns the scene,
 /// the observed frames 4 and 7, the true v0 and the scene's parameters.
@@ -255,7 +215,7 @@ fn pacnerf<M: Constitutive>(
     let f = |k: &str| p[k].as_f64().unwrap();
     let dom = &p["domain"];
     let mut config = SimConfig::new(
-        Aabb::new(v3(&dom["xyz_min"]), v3(&dom["xyz_max"])),
+        Aabb::new(arr3(&dom["xyz_min"]), arr3(&dom["xyz_max"])),
         f("dx"),
         f("dt"),
     );
@@ -276,7 +236,7 @@ fn pacnerf<M: Constitutive>(
         frames: 7,
         substeps_per_frame: p["substeps"].as_u64().unwrap() as usize,
     };
-    let v0 = v3(&p["v0"]);
+    let v0 = arr3(&p["v0"]);
     (s, seen, v0, p)
 }
 
