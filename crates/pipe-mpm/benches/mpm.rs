@@ -33,7 +33,7 @@ use divan::counter::ItemsCount;
 use glam::DVec3;
 use pipe_mpm::{
     Aabb, BackwardOptions, Boundaries, BoundaryKind, Constitutive, FixedCorotated, Material,
-    NeoHookean, SimConfig, Simulator, State, StateGrad,
+    NeoHookean, Precision, SimConfig, Simulator, State, StateGrad,
 };
 
 fn main() {
@@ -212,6 +212,9 @@ fn scene<M: Constitutive>(model: M, n: usize, g: usize) -> (Simulator<M>, State,
         colliders: vec![],
         walls: Some(BoundaryKind::Separate),
     };
+    if std::env::var("MPM_PRECISION").as_deref() == Ok("f32") {
+        cfg.precision = Precision::F32;
+    }
     (Simulator::new(model, cfg).unwrap(), State::at_rest(x), mat)
 }
 

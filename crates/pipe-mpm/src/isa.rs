@@ -28,13 +28,13 @@ pub(crate) enum Isa {
 pub(crate) static CAP: std::sync::atomic::AtomicU8 = std::sync::atomic::AtomicU8::new(0);
 
 #[cfg(test)]
-fn cap() -> u8 {
+pub(crate) fn cap() -> u8 {
     CAP.load(std::sync::atomic::Ordering::Relaxed)
 }
 
 #[cfg(not(test))]
 #[inline(always)]
-fn cap() -> u8 {
+pub(crate) fn cap() -> u8 {
     0
 }
 

@@ -63,6 +63,7 @@ mod sim;
 mod state;
 pub mod svd;
 pub mod timestep;
+mod wide;
 
 pub use adjoint::{BackwardOptions, Gradients, SeedGrad, SeedState, Tape};
 pub use boundary::{Boundaries, BoundaryKind, Collider};
@@ -75,7 +76,7 @@ pub use models::{
     Constitutive, DruckerPrager, FixedCorotated, ModelGrad, NeoHookean, Newtonian, VonMises,
 };
 pub use p2g::Node;
-pub use sim::{RunReport, SimConfig, Simulator};
+pub use sim::{Precision, RunReport, SimConfig, Simulator};
 pub use state::{
     FamilyGrad, FamilyParams, Material, MaterialGrad, State, StateGrad, lame, lame_grad_to_e_nu,
 };

@@ -33,26 +33,53 @@ impl Order {
             .iter()
             .map(|&p| grid.linear(grid.stencil(p).local) as u32)
             .collect();
+        Self::by_key(&key, grid.len())
+    }
+
+    /// Particles sorted by `key` (each `< n_keys`), stably; `None` when already sorted.
+    pub(crate) fn by_key(key: &[u32], n_keys: usize) -> Option<Self> {
         if key.windows(2).all(|w| w[0] <= w[1]) {
             return None;
         }
-        // Counting sort by cell.
-        let mut start = vec![0u32; grid.len() + 1];
-        for &k in &key {
-            start[k as usize + 1] += 1;
+        // Counting sort by key, over the keys' range.
+        let lo = key.iter().copied().min().unwrap_or(0) as usize;
+        let hi = key.iter().copied().max().unwrap_or(0) as usize;
+        debug_assert!(hi < n_keys.max(1));
+        let mut start = vec![0u32; hi - lo + 2];
+        for &k in key {
+            start[k as usize - lo + 1] += 1;
         }
-        for c in 0..grid.len() {
+        for c in 0..=hi - lo {
             start[c + 1] += start[c];
         }
-        let mut order = vec![0u32; x.len()];
-        let mut rank = vec![0u32; x.len()];
+        let mut order = vec![0u32; key.len()];
+        let mut rank = vec![0u32; key.len()];
         for (p, &k) in key.iter().enumerate() {
-            let slot = start[k as usize];
-            start[k as usize] += 1;
+            let slot = start[k as usize - lo];
+            start[k as usize - lo] += 1;
             order[slot as usize] = p as u32;
             rank[p] = slot;
         }
         Some(Self { order, rank })
+    }
+
+    /// The permutation whose slot `i` holds particle `order[i]`.
+    pub(crate) fn from_slots(order: Vec<u32>) -> Self {
+        let mut rank = vec![0u32; order.len()];
+        for (i, &p) in order.iter().enumerate() {
+            rank[p as usize] = i as u32;
+        }
+        Self { order, rank }
+    }
+
+    /// Slot `i` holds the caller's particle `slots()[i]`.
+    pub(crate) fn slots(&self) -> &[u32] {
+        &self.order
+    }
+
+    /// The caller's particle `p` sits in slot `ranks()[p]`.
+    pub(crate) fn ranks(&self) -> &[u32] {
+        &self.rank
     }
 
     /// The caller's index of the particle in slot `i`.

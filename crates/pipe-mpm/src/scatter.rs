@@ -165,28 +165,39 @@ impl Bins {
         }
     }
 
-    /// The slabs of one colour (`parity` 0: even, 1: odd) with their grid pieces, split off
-    /// `out` (x-major, `layer` entries per x-layer): slab `s` gets layers
-    /// `first[s]..first[s + 2]`, which hold all its particles' stencils.
+    /// The slabs of one colour with their grid pieces ([`colour_pieces`]).
     fn colour<'o, T>(
         &self,
         parity: usize,
         layer: usize,
-        mut out: &'o mut [T],
+        out: &'o mut [T],
     ) -> Vec<(usize, usize, &'o mut [T])> {
-        let n_slabs = self.first.len().saturating_sub(1);
-        let mut pieces = Vec::with_capacity(n_slabs / 2 + 1);
-        let mut at = 0;
-        for s in (parity..n_slabs).step_by(2) {
-            let (lo, hi) = (self.first[s], self.first[(s + 2).min(n_slabs)]);
-            let (_, tail) = out.split_at_mut((lo - at) * layer);
-            let (piece, tail) = tail.split_at_mut((hi - lo) * layer);
-            pieces.push((s, lo, piece));
-            out = tail;
-            at = hi;
-        }
-        pieces
+        colour_pieces(&self.first, parity, layer, out)
     }
+}
+
+/// The slabs of one colour (`parity` 0: even, 1: odd) of the cuts `first` (x cells) with their
+/// grid pieces, split off `out` (x-major, `layer` entries per x-layer): slab `s` gets layers
+/// `first[s]..first[s + 2]`, which hold the stencils of all its particles. Returns
+/// `(slab, first layer, piece)`.
+pub(crate) fn colour_pieces<'o, T>(
+    first: &[usize],
+    parity: usize,
+    layer: usize,
+    mut out: &'o mut [T],
+) -> Vec<(usize, usize, &'o mut [T])> {
+    let n_slabs = first.len().saturating_sub(1);
+    let mut pieces = Vec::with_capacity(n_slabs / 2 + 1);
+    let mut at = 0;
+    for s in (parity..n_slabs).step_by(2) {
+        let (lo, hi) = (first[s], first[(s + 2).min(n_slabs)]);
+        let (_, tail) = out.split_at_mut((lo - at) * layer);
+        let (piece, tail) = tail.split_at_mut((hi - lo) * layer);
+        pieces.push((s, lo, piece));
+        out = tail;
+        at = hi;
+    }
+    pieces
 }
 
 /// Slab boundaries (cells; `0`, the cuts, `nx`) for `n` particles counted per x cell: the

@@ -36,6 +36,21 @@ pub struct SimConfig {
     pub boundaries: Boundaries,
     /// External forces and impulses.
     pub forces: Vec<ParticleForce>,
+    /// Floating-point precision of [`Simulator::run`].
+    pub precision: Precision,
+}
+
+/// Floating-point precision of a forward run ([`Simulator::run`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum Precision {
+    /// `f64` throughout: the reference, and the precision of the taped forward pass and the
+    /// backward pass.
+    #[default]
+    F64,
+    /// `f32` particle state and arithmetic on the vectorised engine (eight particles per
+    /// vector; the grid stays `f64`), as the peer simulators (Taichi, Warp) run: about three
+    /// times the `f64` throughput, positions within ~1e-5 cells per 100 substeps of it.
+    F32,
 }
 
 impl SimConfig {
@@ -55,6 +70,7 @@ impl SimConfig {
                 walls: Some(crate::boundary::BoundaryKind::Separate),
             },
             forces: Vec::new(),
+            precision: Precision::F64,
         }
     }
 }
@@ -207,6 +223,39 @@ pub struct Simulator<M: Constitutive> {
     pub(crate) model: M,
     pub(crate) config: SimConfig,
     pub(crate) grid: GridSpec,
+    /// The vectorised engine's arrays from the last run (reused by the next).
+    pub(crate) wide_cache: BufferCache,
+}
+
+/// Buffers kept from one run to the next (any type; a run takes them or starts empty). A
+/// clone of the simulator starts with an empty cache.
+#[derive(Default)]
+pub(crate) struct BufferCache(std::sync::Mutex<Option<Box<dyn std::any::Any + Send>>>);
+
+impl BufferCache {
+    /// The cached buffers if they are a `B` (the cache is left empty).
+    pub(crate) fn take<B: 'static>(&self) -> Option<B> {
+        let mut slot = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        let b = slot.take()?;
+        b.downcast::<B>().ok().map(|b| *b)
+    }
+
+    /// Keeps `b` for the next run.
+    pub(crate) fn put<B: Send + 'static>(&self, b: B) {
+        *self.0.lock().unwrap_or_else(|e| e.into_inner()) = Some(Box::new(b));
+    }
+}
+
+impl Clone for BufferCache {
+    fn clone(&self) -> Self {
+        Self::default()
+    }
+}
+
+impl std::fmt::Debug for BufferCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("BufferCache")
+    }
 }
 
 impl<M: Constitutive> Simulator<M> {
@@ -233,6 +282,7 @@ impl<M: Constitutive> Simulator<M> {
             model,
             config,
             grid,
+            wide_cache: BufferCache::default(),
         })
     }
 
@@ -448,8 +498,22 @@ impl<M: Constitutive> Simulator<M> {
         t0: f64,
         n_substeps: usize,
     ) -> Result<RunReport, MpmError> {
-        self.advance(state, mat, t0, n_substeps, |_, _| {})
-            .map(|(rep, _)| rep)
+        match self.config.precision {
+            Precision::F64 => self
+                .advance(state, mat, t0, n_substeps, |_, _| {})
+                .map(|(rep, _)| rep),
+            Precision::F32 => on_worker(|| {
+                self.validate(state, mat)?;
+                let held = self.hold_all(state);
+                let mut rep = RunReport {
+                    held,
+                    max_held: held,
+                    ..RunReport::default()
+                };
+                crate::wide::run::<f32, M>(self, state, mat, t0, n_substeps, &mut rep)?;
+                Ok(rep)
+            }),
+        }
     }
 
     /// The simulator seen in slot order `o`: forces renumbered to slots.

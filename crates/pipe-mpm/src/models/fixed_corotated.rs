@@ -13,6 +13,8 @@ use crate::svd::{polar_rotation, polar_rotation_adjoint, rotation_adjoint, svd3}
 pub struct FixedCorotated;
 
 impl Constitutive for FixedCorotated {
+    const LANE_KERNEL: super::LaneKernel = super::LaneKernel::FixedCorotated;
+
     const NAME: &'static str = "fixed_corotated";
 
     #[inline(always)]

@@ -51,10 +51,29 @@ pub(crate) fn particle_model<M: Constitutive>(model: &M, family: &[FamilyParams]
     }
 }
 
+/// Which lane kernel runs a model's stress in the vectorised engine (`crate::wide`): the
+/// elastic models have one; the others run particle by particle there, through
+/// [`Constitutive::update_with_aux`] in `f64`.
+#[doc(hidden)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LaneKernel {
+    /// Particle by particle.
+    PerParticle,
+    /// [`NeoHookean`].
+    NeoHookean,
+    /// [`FixedCorotated`].
+    FixedCorotated,
+}
+
 /// A constitutive law: strain prediction, return mapping and Kirchhoff stress, with adjoints.
 pub trait Constitutive: Send + Sync + std::fmt::Debug + Clone {
     /// Short name (`"neo_hookean"`, ...).
     const NAME: &'static str;
+
+    /// The lane kernel of the vectorised engine (must compute exactly this model's
+    /// [`Self::update_with_aux`], in the engine's precision).
+    #[doc(hidden)]
+    const LANE_KERNEL: LaneKernel = LaneKernel::PerParticle;
 
     /// Whether [`ModelGrad::family`] can be non-zero (the model has family scalars such as a
     /// yield stress); when false the backward pass neither stores nor sums it.

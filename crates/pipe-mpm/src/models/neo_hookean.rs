@@ -12,6 +12,8 @@ use crate::state::FamilyGrad;
 pub struct NeoHookean;
 
 impl Constitutive for NeoHookean {
+    const LANE_KERNEL: super::LaneKernel = super::LaneKernel::NeoHookean;
+
     const NAME: &'static str = "neo_hookean";
 
     #[inline(always)]
