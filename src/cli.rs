@@ -130,9 +130,20 @@ enum Command {
         /// the material (PhysGaussian), ready for `pipe render`.
         #[arg(long)]
         splats: bool,
+        /// Floating-point precision: f64 (the reference) or f32 (about twice as fast, as the
+        /// peer simulators run).
+        #[arg(long, value_enum, default_value_t = PrecisionArg::F64)]
+        precision: PrecisionArg,
     },
     /// Print the JSON Schema of pipeline files (for editors and validators).
     Schema,
+}
+
+/// `pipe simulate --precision`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum PrecisionArg {
+    F64,
+    F32,
 }
 
 /// Export formats.
@@ -368,10 +379,17 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
             frames,
             out,
             splats,
+            precision,
         } => {
             install_interrupt_handler();
             let reporter = Reporter::auto(cli.quiet);
-            let options = crate::simulate::Options { splats: *splats };
+            let options = crate::simulate::Options {
+                splats: *splats,
+                precision: match precision {
+                    PrecisionArg::F64 => pipe_mpm::Precision::F64,
+                    PrecisionArg::F32 => pipe_mpm::Precision::F32,
+                },
+            };
             let summary =
                 crate::simulate::run_with(particles, material, *frames, out, &reporter, options)
                     .map_err(|e| RunError::Output(e.to_string()))?;

@@ -208,6 +208,9 @@ pub struct Options {
     /// Also write `splats_NNNN.ply`: the input 3DGS splats carried by the motion
     /// ([`crate::scene::deform`]).
     pub splats: bool,
+    /// Floating-point precision of the simulation (`f64` by default; `f32` runs about twice as
+    /// fast, as the peer simulators do).
+    pub precision: pipe_mpm::Precision,
 }
 
 /// [`run`] with [`Options`].
@@ -297,6 +300,7 @@ pub fn run_with(
         out,
         progress,
         gaussians: gaussians.as_ref(),
+        precision: options.precision,
     };
     let done = spec.material.mpm_family().visit(job)?;
 
@@ -346,6 +350,11 @@ pub fn run_with(
         held_total,
         warnings,
         splats: options.splats,
+        precision: match options.precision {
+            pipe_mpm::Precision::F64 => "f64",
+            pipe_mpm::Precision::F32 => "f32",
+        }
+        .to_string(),
         wall_time_s: started.elapsed().as_secs_f64(),
     };
     output::write_summary(out, &summary)?;
@@ -398,6 +407,7 @@ struct Job<'a> {
     progress: &'a dyn Progress,
     /// The input's 3DGS splats, written moved and deformed with every frame (`--splats`).
     gaussians: Option<&'a Gaussians>,
+    precision: pipe_mpm::Precision,
 }
 
 /// Most automatic substeps a frame may take (beyond it the run has diverged, or a force is far
@@ -560,6 +570,7 @@ impl Job<'_> {
             walls: Some(BoundaryKind::Separate),
         };
         cfg.forces = setup.forces.clone();
+        cfg.precision = self.precision;
         let setup_err = |source| SimulateError::Simulation {
             context: format!(
                 "setting up the simulator (dx {} m, domain {:?} to {:?} m)",

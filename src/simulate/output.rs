@@ -246,6 +246,9 @@ pub struct Summary {
     /// Whether `splats_NNNN.ply` were written (`--splats`).
     #[serde(default)]
     pub splats: bool,
+    /// Floating-point precision of the simulation (`f64` or `f32`).
+    #[serde(default)]
+    pub precision: String,
     /// Wall-clock time of the whole command (s).
     pub wall_time_s: f64,
 }

@@ -255,6 +255,39 @@ fn droplet_frames_1_2_reproduce_pacnerf() {
     }
 }
 
+/// `--precision f32`: the torus (14137 particles, neo-Hookean, PAC-NeRF's 200 substeps per
+/// frame) through frame 4 in f32 stays within 1e-4 m mean Chamfer of PAC-NeRF's own frame (a
+/// float32 simulator) and of the f64 run, loses nothing, and the summary says f32.
+#[test]
+fn f32_precision_reproduces_the_torus() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sim = fixture("torus-elastic.sim.yaml");
+    let ply = pacnerf("torus-elastic", "0.ply");
+    let run = |p: pipe_mpm::Precision, dir: &str| {
+        let out = tmp.path().join(dir);
+        let opts = simulate::Options {
+            splats: false,
+            precision: p,
+        };
+        let s = simulate::run_with(&ply, &sim, 5, &out, &quiet(), opts).unwrap();
+        (s, read(&out.join("frame_0004.ply")))
+    };
+    let (s32, x32) = run(pipe_mpm::Precision::F32, "f32");
+    let (s64, x64) = run(pipe_mpm::Precision::F64, "f64");
+    assert_eq!(
+        (s32.precision.as_str(), s64.precision.as_str()),
+        ("f32", "f64")
+    );
+    assert_eq!((s32.particles_out, s32.held_total), (14137, 0));
+    let gt = read(&pacnerf("torus-elastic", "4.ply"));
+    let (to_gt, to_f64) = (
+        mean_chamfer(&x32, &gt).unwrap(),
+        mean_chamfer(&x32, &x64).unwrap(),
+    );
+    println!("torus frame 4 in f32: mean Chamfer {to_gt:.3e} m to PAC-NeRF, {to_f64:.3e} m to f64");
+    assert!(to_gt < 1e-4 && to_f64 < 1e-4, "{to_gt} {to_f64}");
+}
+
 /// The PAC-NeRF scenes and their particle counts.
 const PACNERF_SCENES: [(&str, usize); 3] = [
     ("torus-elastic", 14137),
@@ -546,7 +579,10 @@ fn splats_follow_the_particles() {
                 frame_dt: 0.041666666666666664\n";
     let sim = write_sim(tmp.path(), yaml);
     let out = tmp.path().join("out");
-    let opts = simulate::Options { splats: true };
+    let opts = simulate::Options {
+        splats: true,
+        precision: pipe_mpm::Precision::F64,
+    };
     let s = simulate::run_with(&ply, &sim, 3, &out, &quiet(), opts).unwrap();
     assert!(s.splats && s.report(&out).contains("3 splat PLYs"));
     let input = ply::read_gaussians(&ply).unwrap();

@@ -11,7 +11,6 @@ use glam::{DVec3, IVec3};
 use rayon::prelude::*;
 
 use crate::error::MpmError;
-use crate::isa::{Lanes, Scalar};
 
 /// Axis-aligned box (m).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -178,42 +177,20 @@ impl GridSpec {
     /// Stencil of a particle at `x` (m); `x` must lie in the domain.
     #[inline(always)]
     pub fn stencil(&self, x: DVec3) -> Stencil {
-        self.stencil_with(Scalar, x)
-    }
-
-    /// Local index of the first of the 3×3×3 stencil nodes of a particle at `x` (m): the
-    /// `local` of [`Self::stencil`] without the weights.
-    #[inline(always)]
-    pub(crate) fn stencil_base<L: Lanes>(&self, l: L, x: DVec3) -> [usize; 3] {
-        self.base_of_scaled(l, x * self.inv_dx).1
-    }
-
-    /// `base = ⌊x/dx − 1/2⌋` (cells, as `f64`) and its local index, from `xs = x/dx`.
-    #[inline(always)]
-    fn base_of_scaled<L: Lanes>(&self, l: L, xs: DVec3) -> (DVec3, [usize; 3]) {
+        let xs = x * self.inv_dx;
+        // base = ⌊x/dx − 1/2⌋ (cells) and its local index.
         let h = xs - DVec3::splat(0.5);
-        let base = DVec3::new(l.floor(h.x), l.floor(h.y), l.floor(h.z));
+        let base = DVec3::new(floor1(h.x), floor1(h.y), floor1(h.z));
         let b = base.as_ivec3() - self.origin;
         debug_assert!(
             b.min_element() >= 0,
             "particle at {xs:?} cells below the grid"
         );
-        (
-            base,
-            [
-                b.x.max(0) as usize,
-                b.y.max(0) as usize,
-                b.z.max(0) as usize,
-            ],
-        )
-    }
-
-    /// [`Self::stencil`] with the floor of lanes `l` (one instruction under AVX2; the result is
-    /// the same, a floor being exact).
-    #[inline(always)]
-    pub(crate) fn stencil_with<L: Lanes>(&self, l: L, x: DVec3) -> Stencil {
-        let xs = x * self.inv_dx;
-        let (base, local) = self.base_of_scaled(l, xs);
+        let local = [
+            b.x.max(0) as usize,
+            b.y.max(0) as usize,
+            b.z.max(0) as usize,
+        ];
         let fx = xs - base;
         debug_assert!(
             (0..3).all(|a| local[a] + 2 < self.dims[a]),
@@ -406,7 +383,6 @@ mod tests {
             DVec3::new(-0.3, 0.55, 0.05),
         ] {
             let st = g.stencil(x);
-            assert_eq!(g.stencil_base(Scalar, x), st.local);
             let (mut sw, mut swd) = (0.0, DVec3::ZERO);
             for o in OFFSETS {
                 sw += st.weight(o);

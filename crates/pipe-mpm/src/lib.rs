@@ -1,4 +1,5 @@
-//! Differentiable MLS-MPM (Hu et al. 2018) with every PAC-NeRF material, on the CPU, in f64.
+//! Differentiable MLS-MPM (Hu et al. 2018) with every PAC-NeRF material, on the CPU, in `f64`
+//! or `f32` ([`Precision`]).
 //!
 //! Units are SI throughout: metres, seconds, kilograms, pascals. The substep follows PAC-NeRF's
 //! `mpm_simulator.py` exactly (see `tests/fixtures` and the fixture README §3):
@@ -6,10 +7,12 @@
 //! `D⁻¹ = 4/dx²`) → grid update `v = p/m + dt g` and boundaries → G2P.
 //!
 //! Reverse mode is written by hand ([`Simulator::substep_backward`], [`Simulator::backward`]
-//! with checkpointing). P2G is parallel without atomics and bit-identical for any thread count.
-//! A run works on the particles sorted by grid cell and returns everything in the caller's
-//! order; the node kernels use AVX2 + FMA when the CPU has them, with results identical to
-//! the portable path.
+//! with checkpointing). The kernels work on particles across SIMD lanes: a run sorts the
+//! particles by stencil cell and cuts them into groups of one vector (eight `f32` or four
+//! `f64`) that share their 27 grid nodes, and returns everything in the caller's order. P2G
+//! is parallel without atomics and bit-identical for any thread count; the kernels use AVX2 +
+//! FMA (and AVX-512's registers) when the CPU has them, with results identical to the
+//! portable path.
 //!
 //! ```
 //! use glam::DVec3;
@@ -39,26 +42,25 @@
 //! assert!(g.state.v[0].y > 0.0 && d_e.is_finite() && d_nu.is_finite());
 //! ```
 //!
-//! Modules: [`grid`] (index math, stencil), `p2g`, `grid_update`, `g2p`, [`boundary`],
-//! [`forces`], [`timestep`], [`svd`], [`models`] (one file per family), [`adjoint`]
-//! (per-kernel adjoints and checkpointing), [`scatter`] (deterministic parallel scatter),
-//! [`family`] (runtime family choice, monomorphised inside), `order` (the spatial order of a
-//! run), `isa` (run-time AVX2 + FMA choice and the 4-lane vectors of the node kernels).
+//! Modules: [`grid`] (index math, stencil), `grid_update`, [`boundary`], [`forces`],
+//! [`timestep`], [`svd`], [`models`] (one file per family), [`adjoint`] (the public reverse
+//! mode and checkpointing schedule), `wide` (the vectorised engine: lanes, groups, forward and
+//! adjoint kernels, tape), `scatter` (deterministic slab colouring), [`family`] (runtime
+//! family choice, monomorphised inside), `order` (permutations of the particles), `isa`
+//! (run-time AVX2 + FMA choice).
 
 pub mod adjoint;
 pub mod boundary;
 mod error;
 pub mod family;
 pub mod forces;
-mod g2p;
 pub mod grid;
 mod grid_update;
 mod isa;
 pub mod math;
 pub mod models;
 mod order;
-mod p2g;
-pub mod scatter;
+mod scatter;
 mod sim;
 mod state;
 pub mod svd;
@@ -75,7 +77,6 @@ pub use grid_update::mass_threshold;
 pub use models::{
     Constitutive, DruckerPrager, FixedCorotated, ModelGrad, NeoHookean, Newtonian, VonMises,
 };
-pub use p2g::Node;
 pub use sim::{Precision, RunReport, SimConfig, Simulator};
 pub use state::{
     FamilyGrad, FamilyParams, Material, MaterialGrad, State, StateGrad, lame, lame_grad_to_e_nu,

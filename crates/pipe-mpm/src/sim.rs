@@ -2,22 +2,17 @@
 //!
 //! 1. `F_tmp = (I + dt C) F`; 2–4. return mapping and Kirchhoff stress τ (the model);
 //! 5. P2G; 6. grid update and boundaries; 7. G2P, `x ← x + dt v`, held in the domain.
+//!
+//! The substep runs on the vectorised engine (`crate::wide`) in the configured [`Precision`].
 
-use glam::{DMat3, DVec3};
-use rayon::prelude::*;
+use glam::DVec3;
 
 use crate::boundary::Boundaries;
 use crate::error::MpmError;
-use crate::forces::{ParticleForce, extra_momentum};
-use crate::g2p::g2p;
-use crate::grid::{Aabb, GridSpec, NodeBox};
-use crate::grid_update::{NodeVel, grid_update};
-use crate::isa::{Isa, Lanes, WithLanes};
-use crate::models::{Constitutive, particle_model};
-use crate::order::Order;
-use crate::p2g::{Node, P2gIn, p2g};
-use crate::scatter::Bins;
-use crate::state::{FamilyParams, Material, State};
+use crate::forces::ParticleForce;
+use crate::grid::{Aabb, GridSpec};
+use crate::models::Constitutive;
+use crate::state::{Material, State};
 
 /// Scene-level settings (SI units).
 #[derive(Debug, Clone, PartialEq)]
@@ -36,20 +31,21 @@ pub struct SimConfig {
     pub boundaries: Boundaries,
     /// External forces and impulses.
     pub forces: Vec<ParticleForce>,
-    /// Floating-point precision of [`Simulator::run`].
+    /// Floating-point precision of the runs, tapes and backward passes.
     pub precision: Precision,
 }
 
-/// Floating-point precision of a forward run ([`Simulator::run`]).
+/// Floating-point precision of the particle state, the grid and the arithmetic (the boundary
+/// conditions and the per-particle return maps of the plastic and fluid families always run
+/// in `f64`).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub enum Precision {
-    /// `f64` throughout: the reference, and the precision of the taped forward pass and the
-    /// backward pass.
+    /// `f64`, four particles per vector: the reference, used by the gradient checks.
     #[default]
     F64,
-    /// `f32` particle state and arithmetic on the vectorised engine (eight particles per
-    /// vector; the grid stays `f64`), as the peer simulators (Taichi, Warp) run: about three
-    /// times the `f64` throughput, positions within ~1e-5 cells per 100 substeps of it.
+    /// `f32`, eight particles per vector, as the peer simulators (Taichi, Warp) run: about
+    /// twice the `f64` throughput; positions within ~1e-6 m of it after 40 substeps of the
+    /// engine tests' scene.
     F32,
 }
 
@@ -86,124 +82,6 @@ pub struct RunReport {
     pub max_held: usize,
 }
 
-/// Intermediates of one substep (reused across substeps; the adjoint recomputes them).
-#[derive(Debug, Clone, Default)]
-pub(crate) struct Work {
-    pub bins: Bins,
-    pub tau: Vec<DMat3>,
-    /// [`Constitutive::update_with_aux`]'s scalar per particle (empty unless
-    /// [`Constitutive::STRESS_AUX`]).
-    pub aux: Vec<f64>,
-    pub nodes: Vec<Node>,
-    /// Nodes `nodes` and `vgrid` hold for this substep (outside it `nodes` is zero and `vgrid`
-    /// is stale).
-    pub active: NodeBox,
-    pub vgrid: Vec<NodeVel>,
-    pub extra: Option<Vec<DVec3>>,
-    /// Set by [`Simulator::forward`] when some new `x, v, C` or `F` is NaN/Inf (checked in the
-    /// kernels, so the full scan runs only then).
-    pub non_finite: bool,
-}
-
-/// Particles per parallel task of the stress pass.
-const STRESS_CHUNK: usize = 1024;
-
-/// Where a stress chunk reads `F_old` and whether it writes the new `F`.
-enum FIo<'a> {
-    /// Read and overwrite `F` in place.
-    InPlace(&'a mut [DMat3]),
-    /// Read the first, write the second.
-    From(&'a [DMat3], &'a mut [DMat3]),
-    /// Read only (the stress alone is wanted).
-    Read(&'a [DMat3]),
-}
-
-/// Steps 1–4 for a chunk of particles: `F ← update((I + dt C) F_old)` and `τ`; returns whether
-/// some new `F` is NaN/Inf.
-struct StressChunk<'a, M> {
-    model: &'a M,
-    dt: f64,
-    c: &'a [DMat3],
-    mu: &'a [f64],
-    lam: &'a [f64],
-    /// Per-particle family scalars (empty: the model's own).
-    family: &'a [FamilyParams],
-    f: FIo<'a>,
-    tau: &'a mut [DMat3],
-    /// Written when [`Constitutive::STRESS_AUX`] (else empty).
-    aux: &'a mut [f64],
-}
-
-/// `v` (resized to `n`) in chunks of `chunk` when `used`, else as many empty slices: per-chunk
-/// outputs that only some models write, zipped with the other chunks of a parallel pass.
-pub(crate) fn chunks_or_empty<T: Default + Clone>(
-    v: &mut Vec<T>,
-    n: usize,
-    chunk: usize,
-    used: bool,
-) -> Vec<&mut [T]> {
-    if used {
-        v.resize(n, T::default());
-        v.chunks_mut(chunk).collect()
-    } else {
-        v.clear();
-        (0..n.div_ceil(chunk))
-            .map(|_| <&mut [T]>::default())
-            .collect()
-    }
-}
-
-impl<M: Constitutive> WithLanes for StressChunk<'_, M> {
-    type Output = bool;
-
-    #[inline(always)]
-    fn with<L: Lanes>(self, _l: L) -> bool {
-        let StressChunk {
-            model,
-            dt,
-            c,
-            mu,
-            lam,
-            family,
-            mut f,
-            tau,
-            aux,
-        } = self;
-        let mut bad = false;
-        for (p, tau) in tau.iter_mut().enumerate() {
-            let f0 = match &f {
-                FIo::InPlace(io) => io[p],
-                FIo::From(old, _) | FIo::Read(old) => old[p],
-            };
-            let model = particle_model(model, family, p);
-            let ft = model.predict(&c[p], &f0, dt);
-            let (f_new, t_new, a) = model.update_with_aux(&ft, &c[p], mu[p], lam[p], dt);
-            *tau = t_new;
-            if M::STRESS_AUX {
-                aux[p] = a;
-            }
-            match &mut f {
-                FIo::InPlace(out) | FIo::From(_, out) => {
-                    out[p] = f_new;
-                    bad |= !f_new.is_finite();
-                }
-                FIo::Read(_) => {}
-            }
-        }
-        bad
-    }
-}
-
-/// The part `r` of per-particle family scalars (empty stays empty: the model's own).
-#[inline]
-fn family_chunk(family: &[FamilyParams], r: std::ops::Range<usize>) -> &[FamilyParams] {
-    if family.is_empty() {
-        family
-    } else {
-        &family[r]
-    }
-}
-
 /// Runs `f` on a worker thread of the current rayon pool (inline when already on one).
 ///
 /// A loop of parallel kernels driven from outside the pool hands every kernel to the pool and
@@ -223,8 +101,10 @@ pub struct Simulator<M: Constitutive> {
     pub(crate) model: M,
     pub(crate) config: SimConfig,
     pub(crate) grid: GridSpec,
-    /// The vectorised engine's arrays from the last run (reused by the next).
+    /// The vectorised engine's arrays from the last run and the last backward pass (reused by
+    /// the next).
     pub(crate) wide_cache: BufferCache,
+    pub(crate) adjoint_cache: BufferCache,
 }
 
 /// Buffers kept from one run to the next (any type; a run takes them or starts empty). A
@@ -283,6 +163,7 @@ impl<M: Constitutive> Simulator<M> {
             config,
             grid,
             wide_cache: BufferCache::default(),
+            adjoint_cache: BufferCache::default(),
         })
     }
 
@@ -336,22 +217,7 @@ impl<M: Constitutive> Simulator<M> {
     /// Validates a state and material for this simulator (lengths, finiteness, forces' indices).
     pub fn validate(&self, state: &State, mat: &Material) -> Result<(), MpmError> {
         state.validate()?;
-        mat.validate(state.len())?;
-        if !mat.family.is_empty() {
-            if !M::HAS_FAMILY_PARAMS {
-                return Err(MpmError::InvalidParameter {
-                    field: "family",
-                    value: mat.family.len() as f64,
-                    reason: "per-particle family parameters given to a model without any",
-                });
-            }
-            for (index, p) in mat.family.iter().enumerate() {
-                self.model
-                    .with_params(p)
-                    .validate()
-                    .map_err(|e| e.at_particle(index))?;
-            }
-        }
+        self.validate_material(mat, state.len())?;
         self.config
             .forces
             .iter()
@@ -367,126 +233,36 @@ impl<M: Constitutive> Simulator<M> {
             .sum()
     }
 
-    /// One substep of `s` (positions inside the domain) at time `t` (s), in place: every
-    /// kernel reads only its own particle's old values after the previous kernel wrote them
-    /// (`F` before P2G, `x, v, C` after it), so no second state is needed.
-    /// Returns the number of particles held at the domain edge.
-    pub(crate) fn forward(&self, s: &mut State, mat: &Material, t: f64, w: &mut Work) -> usize {
-        self.forward_from(None, s, mat, t, w)
-    }
-
-    /// One substep from `src` into `s` (buffers of the same length), or of `s` in place when
-    /// `src` is `None`; bit-identical either way.
-    pub(crate) fn forward_from(
-        &self,
-        src: Option<&State>,
-        s: &mut State,
-        mat: &Material,
-        t: f64,
-        w: &mut Work,
-    ) -> usize {
-        let dt = self.config.dt;
-        let model = &self.model;
-        let n = s.len();
-        w.tau.resize(n, DMat3::ZERO);
-        {
-            let (c_old, f_old) = match src {
-                Some(src) => (&src.c, Some(&src.f)),
-                None => (&s.c, None),
-            };
-            let isa = Isa::detect();
-            let aux = chunks_or_empty(&mut w.aux, n, STRESS_CHUNK, M::STRESS_AUX);
-            w.non_finite =
-                s.f.par_chunks_mut(STRESS_CHUNK)
-                    .zip(w.tau.par_chunks_mut(STRESS_CHUNK))
-                    .zip(aux)
-                    .enumerate()
-                    .map(|(k, ((f, tau), aux))| {
-                        let r = k * STRESS_CHUNK..k * STRESS_CHUNK + f.len();
-                        let f = match f_old {
-                            Some(fo) => FIo::From(&fo[r.clone()], f),
-                            None => FIo::InPlace(f),
-                        };
-                        isa.run_lanes(StressChunk {
-                            model,
-                            dt,
-                            c: &c_old[r.clone()],
-                            mu: &mat.mu[r.clone()],
-                            lam: &mat.lam[r.clone()],
-                            family: family_chunk(&mat.family, r),
-                            f,
-                            tau,
-                            aux,
-                        })
-                    })
-                    .reduce(|| false, |a, b| a | b);
-        }
-        let x_old = match src {
-            Some(src) => {
-                self.to_grid(src, mat, t, w);
-                Some(src.x.as_slice())
-            }
-            None => {
-                self.to_grid(s, mat, t, w);
-                None
-            }
-        };
-        let State { x, v, c, .. } = s;
-        let (held, bad) = g2p(&self.grid, &w.vgrid, dt, x_old, x, v, c);
-        w.non_finite |= bad;
-        held
-    }
-
-    /// Kirchhoff stress τ of every particle into `w.tau` (steps 1–4 without writing `F`).
-    pub(crate) fn stress(&self, s: &State, mat: &Material, w: &mut Work) {
-        let (dt, model, isa) = (self.config.dt, &self.model, Isa::detect());
-        w.tau.resize(s.len(), DMat3::ZERO);
-        let aux = chunks_or_empty(&mut w.aux, s.len(), STRESS_CHUNK, M::STRESS_AUX);
-        w.tau
-            .par_chunks_mut(STRESS_CHUNK)
-            .zip(aux)
-            .enumerate()
-            .for_each(|(k, (tau, aux))| {
-                let r = k * STRESS_CHUNK..k * STRESS_CHUNK + tau.len();
-                isa.run_lanes(StressChunk {
-                    model,
-                    dt,
-                    c: &s.c[r.clone()],
-                    mu: &mat.mu[r.clone()],
-                    lam: &mat.lam[r.clone()],
-                    family: family_chunk(&mat.family, r.clone()),
-                    f: FIo::Read(&s.f[r]),
-                    tau,
-                    aux,
+    /// Checks `mat` for `n` particles and this simulator's model (family parameters).
+    pub(crate) fn validate_material(&self, mat: &Material, n: usize) -> Result<(), MpmError> {
+        mat.validate(n)?;
+        if !mat.family.is_empty() {
+            if !M::HAS_FAMILY_PARAMS {
+                return Err(MpmError::InvalidParameter {
+                    field: "family",
+                    value: mat.family.len() as f64,
+                    reason: "per-particle family parameters given to a model without any",
                 });
-            });
+            }
+            for (index, p) in mat.family.iter().enumerate() {
+                self.model
+                    .with_params(p)
+                    .validate()
+                    .map_err(|e| e.at_particle(index))?;
+            }
+        }
+        Ok(())
     }
 
-    /// Steps 5–6 given `w.tau`: binning, P2G and the grid update into `w.vgrid`.
-    pub(crate) fn to_grid(&self, s: &State, mat: &Material, t: f64, w: &mut Work) {
-        let dt = self.config.dt;
-        w.bins.rebuild(&self.grid, &s.x);
-        w.extra = extra_momentum(&self.config.forces, s.len(), t, dt);
-        let inp = P2gIn {
-            x: &s.x,
-            v: &s.v,
-            c: &s.c,
-            tau: &w.tau,
-            mass: &mat.mass,
-            volume: &mat.volume,
-            extra: w.extra.as_deref(),
-            dt,
-        };
-        p2g(&self.grid, &w.bins, inp, &mut w.nodes, &mut w.active);
-        grid_update(
-            &self.grid,
-            &w.nodes,
-            &w.active,
-            dt,
-            self.config.gravity,
-            &self.config.boundaries,
-            &mut w.vgrid,
-        );
+    /// Validates a run's input and holds its particles in the domain: the report so far.
+    pub(crate) fn prepare(&self, state: &mut State, mat: &Material) -> Result<RunReport, MpmError> {
+        self.validate(state, mat)?;
+        let held = self.hold_all(state);
+        Ok(RunReport {
+            held,
+            max_held: held,
+            ..RunReport::default()
+        })
     }
 
     /// Advances `state` by `n_substeps` substeps from time `t0` (s), checking for NaN/Inf after
@@ -498,117 +274,17 @@ impl<M: Constitutive> Simulator<M> {
         t0: f64,
         n_substeps: usize,
     ) -> Result<RunReport, MpmError> {
-        match self.config.precision {
-            Precision::F64 => self
-                .advance(state, mat, t0, n_substeps, |_, _| {})
-                .map(|(rep, _)| rep),
-            Precision::F32 => on_worker(|| {
-                self.validate(state, mat)?;
-                let held = self.hold_all(state);
-                let mut rep = RunReport {
-                    held,
-                    max_held: held,
-                    ..RunReport::default()
-                };
-                crate::wide::run::<f32, M>(self, state, mat, t0, n_substeps, &mut rep)?;
-                Ok(rep)
-            }),
-        }
-    }
-
-    /// The simulator seen in slot order `o`: forces renumbered to slots.
-    pub(crate) fn sorted(&self, o: &Order) -> Self {
-        let mut sim = self.clone();
-        sim.config.forces = o.sort_forces(&self.config.forces);
-        sim
-    }
-
-    /// The substep loop shared by [`Self::run`] and [`Self::forward_tape`]. The particles are
-    /// put in spatial order ([`Order`]) for the loop and handed back in the caller's order;
-    /// `before(k, state_k)` sees the state at the start of every substep `k` in that slot
-    /// order, which is returned (`None`: the caller's order was already spatial).
-    pub(crate) fn advance(
-        &self,
-        state: &mut State,
-        mat: &Material,
-        t0: f64,
-        n_substeps: usize,
-        before: impl FnMut(usize, &State) + Send,
-    ) -> Result<(RunReport, Option<Order>), MpmError> {
-        on_worker(|| self.advance_on_worker(state, mat, t0, n_substeps, before))
-    }
-
-    /// [`Self::advance`] on the calling thread.
-    fn advance_on_worker(
-        &self,
-        state: &mut State,
-        mat: &Material,
-        t0: f64,
-        n_substeps: usize,
-        before: impl FnMut(usize, &State),
-    ) -> Result<(RunReport, Option<Order>), MpmError> {
-        self.validate(state, mat)?;
-        let mut rep = RunReport::default();
-        let h = self.hold_all(state);
-        rep.held += h;
-        rep.max_held = h;
-        let order = Order::by_cell(&self.grid, &state.x);
-        let done = match &order {
-            None => self.substeps(state, mat, t0, n_substeps, &mut rep, before),
-            Some(o) => {
-                let mut s = o.sort_state(state);
-                let done = self.sorted(o).substeps(
-                    &mut s,
-                    &o.sort_material(mat),
-                    t0,
-                    n_substeps,
-                    &mut rep,
-                    before,
-                );
-                o.unsort_state_into(&s, state);
-                // Name the first offending particle in the caller's order.
-                done.map_err(|e| match e {
-                    MpmError::NonFinite { substep, .. } => {
-                        let (quantity, particle) = state.first_non_finite().unwrap_or(("x", 0));
-                        MpmError::NonFinite {
-                            substep,
-                            quantity,
-                            particle,
-                        }
-                    }
-                    e => e,
-                })
-            }
-        };
-        done.map(|()| (rep, order))
-    }
-
-    /// `n_substeps` substeps of `state` (already validated and held), counted into `rep`.
-    fn substeps(
-        &self,
-        state: &mut State,
-        mat: &Material,
-        t0: f64,
-        n_substeps: usize,
-        rep: &mut RunReport,
-        mut before: impl FnMut(usize, &State),
-    ) -> Result<(), MpmError> {
-        let mut w = Work::default();
-        for k in 0..n_substeps {
-            before(k, state);
-            let held = self.forward(state, mat, t0 + k as f64 * self.config.dt, &mut w);
-            let bad = w.non_finite.then(|| state.first_non_finite()).flatten();
-            if let Some((quantity, particle)) = bad {
-                return Err(MpmError::NonFinite {
-                    substep: k,
-                    quantity,
-                    particle,
-                });
-            }
-            rep.substeps += 1;
-            rep.held += held;
-            rep.max_held = rep.max_held.max(held);
-        }
-        Ok(())
+        on_worker(|| {
+            let mut rep = self.prepare(state, mat)?;
+            match self.config.precision {
+                Precision::F64 => {
+                    crate::wide::run::<f64, M>(self, state, mat, t0, n_substeps, &mut rep)
+                }
+                Precision::F32 => {
+                    crate::wide::run::<f32, M>(self, state, mat, t0, n_substeps, &mut rep)
+                }
+            }?;
+            Ok(rep)
+        })
     }
 }

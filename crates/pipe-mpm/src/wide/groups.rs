@@ -246,6 +246,38 @@ impl Groups {
         }
     }
 
+    /// [`Self::scatter`] that also hands `f` the slab's entries of `per_group` (one per group,
+    /// in slab order: `per_group[i]` belongs to `by_slab[i]`).
+    pub fn scatter_with<N: Send, O: Send>(
+        &self,
+        grid: &GridSpec,
+        out: &mut [N],
+        per_group: &mut [O],
+        f: impl Fn(&[Group], &mut [O], &mut [N], usize) + Sync,
+    ) {
+        debug_assert_eq!(per_group.len(), self.by_slab.len());
+        let mut by_parity: [Vec<&mut [O]>; 2] = [Vec::new(), Vec::new()];
+        let mut rest = per_group;
+        for s in 0..self.start.len().saturating_sub(1) {
+            let (mine, tail) = rest.split_at_mut(self.start[s + 1] - self.start[s]);
+            rest = tail;
+            by_parity[s % 2].push(mine);
+        }
+        for (parity, entries) in by_parity.into_iter().enumerate() {
+            colour_pieces(&self.first, parity, grid.layer(), out)
+                .into_par_iter()
+                .zip(entries)
+                .for_each(|((s, first, piece), os)| {
+                    f(
+                        &self.by_slab[self.start[s]..self.start[s + 1]],
+                        os,
+                        piece,
+                        first,
+                    )
+                });
+        }
+    }
+
     /// Groups cut into tasks of about `per_task` particles, each a contiguous slot range
     /// `(groups, first_slot, end_slot)`.
     pub fn tasks(&self, per_task: usize) -> Vec<(&[Group], usize, usize)> {

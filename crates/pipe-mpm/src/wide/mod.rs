@@ -26,10 +26,12 @@ macro_rules! arr {
     }};
 }
 
+pub(crate) mod adjoint;
 pub(crate) mod groups;
 pub(crate) mod simd;
 pub(crate) mod soa;
 pub(crate) mod stress;
+pub(crate) mod tape;
 pub(crate) mod transfer;
 
 #[cfg(test)]
@@ -41,7 +43,7 @@ use rayon::prelude::*;
 use self::groups::Groups;
 use self::simd::{Precise, Real};
 use self::soa::{C, F, Soa, V, padded};
-use self::stress::StressTask;
+use self::stress::{Kept, StressTask};
 use self::transfer::{G2pOut, G2pTask, P2gTask};
 use crate::boundary::Boundaries;
 use crate::error::MpmError;
@@ -55,10 +57,10 @@ use crate::sim::{RunReport, Simulator};
 use crate::state::{Material, State};
 
 /// Particles per task of the stress pass (a multiple of every lane count).
-const STRESS_CHUNK: usize = 1024;
+pub(crate) const STRESS_CHUNK: usize = 1024;
 
 /// Particles per task of G2P (about; tasks end on group boundaries).
-const G2P_CHUNK: usize = 2048;
+pub(crate) const G2P_CHUNK: usize = 2048;
 
 /// A run re-sorts its particles when they have broken into this many times the groups of the
 /// last sort (as they move, runs of one cell get shorter).
@@ -91,18 +93,22 @@ pub(crate) fn split_fields<'a, T, const K: usize>(
 }
 
 /// `K` consecutive fields of a field-major buffer with `stride` entries per field, from `at`.
-fn fields_mut<T, const K: usize>(data: &mut [T], stride: usize, at: usize) -> [&mut [T]; K] {
+pub(crate) fn fields_mut<T, const K: usize>(
+    data: &mut [T],
+    stride: usize,
+    at: usize,
+) -> [&mut [T]; K] {
     let mut it = data[at * stride..(at + K) * stride].chunks_exact_mut(stride);
     std::array::from_fn(|_| it.next().expect("K fields"))
 }
 
 /// `K` consecutive fields of a field-major buffer, from `at`.
-fn fields<T, const K: usize>(data: &[T], stride: usize, at: usize) -> [&[T]; K] {
+pub(crate) fn fields<T, const K: usize>(data: &[T], stride: usize, at: usize) -> [&[T]; K] {
     std::array::from_fn(|k| &data[(at + k) * stride..(at + k + 1) * stride])
 }
 
 /// Node velocities `[vx, vy, vz, 0]` (m/s, in `T`) from the accumulated `[mv, m]` of the
-/// nodes of `active`: `v = mv/m + dt g` above the mass threshold, then the boundary
+/// nodes of `active`, returning the largest velocity component (m/s): `v = mv/m + dt g` above the mass threshold, then the boundary
 /// conditions (in `f64`, [`Boundaries::apply`]); 0 below it. The rest of `out` is left as it
 /// was (nothing reads it).
 #[allow(clippy::too_many_arguments)]
@@ -114,7 +120,7 @@ pub(crate) fn grid_update<T: Real>(
     g: glam::DVec3,
     bc: &Boundaries,
     out: &mut Vec<[T; 4]>,
-) {
+) -> f64 {
     let thr = mass_threshold(grid.dx);
     out.resize(grid.len(), [T::of(0.0); 4]);
     let (layer, dz) = (grid.layer(), grid.dims[2]);
@@ -123,7 +129,8 @@ pub(crate) fn grid_update<T: Real>(
         .enumerate()
         .skip(active.x.start)
         .take(active.x.len())
-        .for_each(|(x, (out, nodes))| {
+        .map(|(x, (out, nodes))| {
+            let mut v_max = 0.0f64;
             for y in active.y.clone() {
                 let row = y * dz..(y + 1) * dz;
                 for (z, (o, n)) in out[row.clone()].iter_mut().zip(&nodes[row]).enumerate() {
@@ -131,18 +138,82 @@ pub(crate) fn grid_update<T: Real>(
                     *o = if m > thr {
                         let mv = glam::DVec3::new(n[0].f64(), n[1].f64(), n[2].f64());
                         let v = bc.apply(grid, grid.node_pos([x, y, z]), mv / m + dt * g);
-                        [T::of(v.x), T::of(v.y), T::of(v.z), T::of(0.0)]
+                        let vt = [T::of(v.x), T::of(v.y), T::of(v.z), T::of(0.0)];
+                        v_max = v_max.max(vt.iter().fold(0.0, |a, c| a.max(c.f64().abs())));
+                        vt
                     } else {
                         [T::of(0.0); 4]
                     };
                 }
             }
-        });
+            v_max
+        })
+        .reduce(|| 0.0, f64::max)
 }
 
 /// `v[r]`, or `v` itself when empty (a per-particle array that is only kept when needed).
-fn part(v: &[f64], r: std::ops::Range<usize>) -> &[f64] {
+pub(crate) fn part(v: &[f64], r: std::ops::Range<usize>) -> &[f64] {
     if v.is_empty() { v } else { &v[r] }
+}
+
+/// The slots `r` of a per-particle array, or all of it when `uniform` (one value).
+pub(crate) fn per_slot<T>(v: &[T], r: std::ops::Range<usize>, uniform: bool) -> &[T] {
+    if uniform { v } else { &v[r] }
+}
+
+/// The intermediates of one substep that its adjoint reads: the groups, `A`, τ and the
+/// model's scalar (when kept), the forces' momentum and the grid.
+#[derive(Debug)]
+pub(crate) struct Work<T> {
+    pub(crate) groups: Groups,
+    /// The affine matrices `A` (9 fields).
+    pub(crate) a: Vec<T>,
+    /// τ (9 fields) and [`Constitutive::update_with_aux`]'s scalar, when kept.
+    pub(crate) tau: Vec<T>,
+    pub(crate) aux: Vec<T>,
+    /// Extra momentum of the substep (3 fields), when forces act.
+    pub(crate) extra: Option<Vec<T>>,
+    /// `[mv, m]` per node (kg·m/s, kg), zero outside `active`.
+    pub(crate) nodes: Vec<[T; 4]>,
+    pub(crate) active: NodeBox,
+    /// `[v, 0]` per node (m/s), and the largest component of any.
+    pub(crate) vgrid: Vec<[T; 4]>,
+    pub(crate) v_max: f64,
+}
+
+impl<T> Default for Work<T> {
+    fn default() -> Self {
+        Self {
+            groups: Groups::default(),
+            a: Vec::new(),
+            tau: Vec::new(),
+            aux: Vec::new(),
+            extra: None,
+            nodes: Vec::new(),
+            active: NodeBox::default(),
+            vgrid: Vec::new(),
+            v_max: 0.0,
+        }
+    }
+}
+
+impl<T: Real> Work<T> {
+    /// Sized for `n` particles on `grid` (the grid arrays zero when new).
+    fn fit(&mut self, n: usize, grid: &GridSpec, keep: bool, keep_tau: bool) {
+        let st = padded(n);
+        self.a = scratch(std::mem::take(&mut self.a), 9 * st);
+        if keep {
+            if keep_tau {
+                self.tau = scratch(std::mem::take(&mut self.tau), 9 * st);
+            }
+            self.aux = scratch(std::mem::take(&mut self.aux), st);
+        }
+        if self.nodes.len() != grid.len() {
+            self.nodes = vec![[T::of(0.0); 4]; grid.len()];
+            self.vgrid = vec![[T::of(0.0); 4]; grid.len()];
+            self.active = NodeBox::default();
+        }
+    }
 }
 
 /// The engine's arrays, which the simulator keeps from one run to the next so that a run
@@ -155,21 +226,13 @@ pub(crate) struct Buffers<T> {
     spare: Option<Soa<T>>,
     /// The positions the next substep writes (then swapped with `p.x`).
     x_next: Vec<T>,
-    /// The affine matrices `A` (9 fields).
-    a: Vec<T>,
-    /// Extra momentum of the current substep (3 fields), when forces act.
-    extra: Vec<T>,
     /// Per-particle mass, volume, μ, λ in slot order.
     mass: Vec<T>,
     volume: Vec<T>,
     mu: Vec<T>,
     lam: Vec<T>,
-    groups: Groups,
-    /// `[mv, m]` per node (kg·m/s, kg), zero outside `active`.
-    nodes: Vec<[T; 4]>,
-    active: NodeBox,
-    /// `[v, 0]` per node (m/s).
-    vgrid: Vec<[T; 4]>,
+    /// The current substep's intermediates.
+    work: Work<T>,
 }
 
 impl<T> Default for Buffers<T> {
@@ -178,16 +241,11 @@ impl<T> Default for Buffers<T> {
             p: None,
             spare: None,
             x_next: Vec::new(),
-            a: Vec::new(),
-            extra: Vec::new(),
             mass: Vec::new(),
             volume: Vec::new(),
             mu: Vec::new(),
             lam: Vec::new(),
-            groups: Groups::default(),
-            nodes: Vec::new(),
-            active: NodeBox::default(),
-            vgrid: Vec::new(),
+            work: Work::default(),
         }
     }
 }
@@ -200,27 +258,41 @@ fn scratch<T: Real>(mut v: Vec<T>, len: usize) -> Vec<T> {
     v
 }
 
-/// `src` copied into `v` with the padding of [`padded_array`].
+/// `src` copied into `v`, padded with `pad` like the state arrays.
 fn fill_padded<T: Real>(v: &mut Vec<T>, src: &[f64], pad: f64) {
     v.clear();
     v.extend(src.iter().map(|&x| T::of(x)));
     v.resize(padded(src.len()), T::of(pad));
 }
 
-/// One run of the vectorised engine in precision `T`.
+/// An empty material.
+fn no_material() -> Material {
+    Material {
+        mass: Vec::new(),
+        volume: Vec::new(),
+        mu: Vec::new(),
+        lam: Vec::new(),
+        family: Vec::new(),
+    }
+}
+
+/// The vectorised engine in precision `T` for one simulator: the state (slot order), the
+/// per-particle material in the same order, and the buffers.
 pub(crate) struct Engine<'s, T, M: Constitutive> {
-    sim: &'s Simulator<M>,
+    pub(crate) sim: &'s Simulator<M>,
     /// Position of the grid's first node (m): particle positions are stored relative to it.
-    origin: DVec3,
+    pub(crate) origin: DVec3,
     /// The domain relative to `origin`, rounded inwards (m).
-    lo: [T; 3],
-    hi: [T; 3],
+    pub(crate) lo: [T; 3],
+    pub(crate) hi: [T; 3],
     /// Slot `i` holds the caller's particle `ids[i]`; particle `p` sits in slot `rank[p]`.
-    ids: Vec<u32>,
-    rank: Vec<u32>,
-    p: Soa<T>,
+    pub(crate) ids: Vec<u32>,
+    pub(crate) rank: Vec<u32>,
+    pub(crate) p: Soa<T>,
     b: Buffers<T>,
-    /// The caller's material in slot order (`f64`, kept for the per-particle models only).
+    /// The caller's material, and the same in slot order (`f64`, kept for the per-particle
+    /// models only).
+    caller_mat: Material,
     mat: Material,
     /// Whether every particle has the same mass, volume, μ and λ.
     uniform: bool,
@@ -229,9 +301,15 @@ pub(crate) struct Engine<'s, T, M: Constitutive> {
     slot_forces: Vec<ParticleForce>,
     /// Groups right after the last sort.
     sorted_groups: usize,
+    /// Whether the stress pass keeps τ and the model's scalar (for an adjoint).
+    pub(crate) keep: bool,
 }
 
 impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
+    /// Whether an adjoint needs τ kept (the per-particle models; the lane models' adjoints
+    /// recompute it).
+    const KEEP_TAU: bool = matches!(M::LANE_KERNEL, LaneKernel::PerParticle);
+
     /// The engine loaded with `state` (validated, positions inside the domain) and `mat`,
     /// particles sorted by cell, in the buffers `b` (a previous run's, or empty).
     pub(crate) fn new(
@@ -240,60 +318,112 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         mat: &Material,
         mut b: Buffers<T>,
     ) -> Self {
+        let origin = sim.grid.node_pos([0, 0, 0]);
+        // In the caller's order first; sorted below.
+        let p = Soa::from_state(state, origin, b.p.take());
+        let ids = (0..state.len() as u32).collect();
+        let mut e = Self::with_state(sim, p, ids, mat, b);
+        e.resort();
+        e
+    }
+
+    /// The engine loaded with the state `p` in slot order `ids` (slot `i` holds the caller's
+    /// particle `ids[i]`; positions relative to the grid's first node) and `mat` (the
+    /// caller's order), in the buffers `b`.
+    pub(crate) fn with_state(
+        sim: &'s Simulator<M>,
+        p: Soa<T>,
+        ids: Vec<u32>,
+        mat: &Material,
+        mut b: Buffers<T>,
+    ) -> Self {
         let grid = &sim.grid;
         let origin = grid.node_pos([0, 0, 0]);
         let lo_l = grid.domain.lo - origin;
         let hi_l = grid.domain.hi - origin;
-        let n = state.len();
-        let st = padded(n);
-        // In the caller's order first; sorted below.
-        let p = Soa::from_state(state, origin, b.p.take());
-        b.x_next = scratch(std::mem::take(&mut b.x_next), 3 * st);
-        b.a = scratch(std::mem::take(&mut b.a), 9 * st);
-        fill_padded(&mut b.mass, &mat.mass, 0.0);
-        fill_padded(&mut b.volume, &mat.volume, 0.0);
-        fill_padded(&mut b.mu, &mat.mu, 0.0);
-        fill_padded(&mut b.lam, &mat.lam, 0.0);
-        if b.nodes.len() != grid.len() {
-            b.nodes = vec![[T::of(0.0); 4]; grid.len()];
-            b.vgrid = vec![[T::of(0.0); 4]; grid.len()];
-            b.active = NodeBox::default();
-        }
+        let n = p.n;
+        b.x_next = scratch(std::mem::take(&mut b.x_next), 3 * padded(n));
+        b.work.fit(n, grid, false, false);
         let same = |v: &[f64]| v.iter().all(|&x| x == v[0]);
         let uniform = [&mat.mass, &mat.volume, &mat.mu, &mat.lam]
             .into_iter()
             .all(|v| same(v))
             && mat.family.is_empty();
-        // The per-particle models read the f64 material.
-        let keep_mat = M::LANE_KERNEL == LaneKernel::PerParticle || !mat.family.is_empty();
         let mut e = Self {
             sim,
             origin,
             lo: std::array::from_fn(|a| T::of_up(lo_l[a])),
             hi: std::array::from_fn(|a| T::of_down(hi_l[a])),
-            ids: (0..n as u32).collect(),
-            rank: (0..n as u32).collect(),
+            ids: Vec::new(),
+            rank: Vec::new(),
             p,
             b,
-            mat: if keep_mat {
-                mat.clone()
-            } else {
-                Material {
-                    mass: Vec::new(),
-                    volume: Vec::new(),
-                    mu: Vec::new(),
-                    lam: Vec::new(),
-                    family: Vec::new(),
-                }
-            },
+            caller_mat: mat.clone(),
+            mat: no_material(),
             uniform,
             forces: sim.config.forces.clone(),
-            slot_forces: sim.config.forces.clone(),
+            slot_forces: Vec::new(),
             sorted_groups: 0,
+            keep: false,
         };
-        e.b.groups.rebuild(grid, &e.p);
-        e.resort();
+        e.set_order(ids);
+        e.b.work.groups.rebuild(grid, &e.p);
         e
+    }
+
+    /// The spare buffers of a state of `n` particles (from the buffers' own, else new).
+    pub(crate) fn soa_from(b: &mut Buffers<T>, src: &Soa<T>) -> Soa<T> {
+        match b.p.take().filter(|p| p.n == src.n) {
+            Some(mut p) => {
+                p.x.copy_from_slice(&src.x);
+                p.vcf.copy_from_slice(&src.vcf);
+                p
+            }
+            None => src.clone(),
+        }
+    }
+
+    /// Slot `i` holds the caller's particle `ids[i]`: ranks, per-particle material and forces
+    /// follow.
+    fn set_order(&mut self, ids: Vec<u32>) {
+        let order = Order::from_slots(ids);
+        let cm = &self.caller_mat;
+        let b = &mut self.b;
+        for (v, src) in [
+            (&mut b.mass, &cm.mass),
+            (&mut b.volume, &cm.volume),
+            (&mut b.mu, &cm.mu),
+            (&mut b.lam, &cm.lam),
+        ] {
+            if self.uniform {
+                fill_padded(v, &src[..1], src[0]);
+            } else {
+                fill_padded(v, &order.gather(src), 0.0);
+            }
+        }
+        // The per-particle models read the f64 material.
+        if M::LANE_KERNEL == LaneKernel::PerParticle || !cm.family.is_empty() {
+            self.mat = order.sort_material(cm);
+        }
+        if !self.forces.is_empty() {
+            self.slot_forces = order.sort_forces(&self.forces);
+        }
+        self.rank = order.ranks().to_vec();
+        self.ids = order.slots().to_vec();
+    }
+
+    /// Takes the slot order `ids` of a checkpoint of `n` particles (the state itself is not
+    /// copied: the backward pass loads each substep's state before using it).
+    pub(crate) fn load(&mut self, n: usize, ids: &[u32]) {
+        if self.p.n != n {
+            self.p = Soa::new(n);
+        }
+        if self.ids != ids {
+            self.set_order(ids.to_vec());
+        }
+        self.b
+            .work
+            .fit(n, &self.sim.grid, self.keep, Self::KEEP_TAU);
     }
 
     /// The buffers, for the next run.
@@ -302,35 +432,18 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         self.b
     }
 
-    /// Re-sorts the particles by their current cells (`groups.key`): the state, the
-    /// per-particle material, the indices and the forces follow.
+    /// Re-sorts the particles by their current cells (the groups' keys).
     fn resort(&mut self) {
-        let Some(rel) = Order::by_key(&self.b.groups.key, self.sim.grid.len()) else {
+        let Some(rel) = Order::by_key(&self.b.work.groups.key, self.sim.grid.len()) else {
             return;
         };
         let from = rel.slots();
         let mut next = self.spare();
         self.p.permute_into(from, &mut next);
         self.b.spare = Some(std::mem::replace(&mut self.p, next));
-        if !self.uniform {
-            let b = &mut self.b;
-            for v in [&mut b.mass, &mut b.volume, &mut b.mu, &mut b.lam] {
-                let old = v.clone();
-                for (d, &i) in v.iter_mut().zip(from) {
-                    *d = old[i as usize];
-                }
-            }
-        }
-        if !self.mat.mass.is_empty() {
-            self.mat = rel.sort_material(&self.mat);
-        }
-        let order = Order::from_slots(from.iter().map(|&i| self.ids[i as usize]).collect());
-        if !self.forces.is_empty() {
-            self.slot_forces = order.sort_forces(&self.forces);
-        }
-        self.rank = order.ranks().to_vec();
-        self.ids = order.slots().to_vec();
-        self.b.groups.rebuild(&self.sim.grid, &self.p);
+        let ids = from.iter().map(|&i| self.ids[i as usize]).collect();
+        self.set_order(ids);
+        self.b.work.groups.rebuild(&self.sim.grid, &self.p);
     }
 
     /// The spare state buffer (allocated when there is none of this size).
@@ -358,35 +471,78 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         });
     }
 
-    /// Steps 1–4 for every particle: `F` (in place) and `A`; returns whether some new `F` is
+    /// Groups of the current positions; with `resort`, sorts again first when they have
+    /// broken up ([`RESORT_GROWTH`]).
+    pub(crate) fn regroup(&mut self, resort: bool) {
+        self.regroup_from(None, resort);
+    }
+
+    /// [`Self::regroup`] of the positions of `src` (the state the next substep reads) when
+    /// given, else of the engine's own.
+    pub(crate) fn regroup_from(&mut self, src: Option<&Soa<T>>, resort: bool) {
+        self.b
+            .work
+            .groups
+            .rebuild(&self.sim.grid, src.unwrap_or(&self.p));
+        let groups = self.b.work.groups.list.len();
+        if self.sorted_groups == 0 {
+            self.sorted_groups = groups;
+        } else if resort && groups as f64 > RESORT_GROWTH * self.sorted_groups as f64 {
+            self.resort();
+            self.sorted_groups = self.b.work.groups.list.len();
+        }
+    }
+
+    /// Steps 1–4 for every particle: `F` (in place, or from `src` into the engine's state),
+    /// `A`, and τ with the model's scalar when [`Self::keep`]; returns whether some new `F` is
     /// NaN/Inf.
-    fn stress(&mut self, isa: Isa) -> bool {
+    fn stress(&mut self, isa: Isa, src: Option<&Soa<T>>) -> bool {
         let sim = self.sim;
         let grid = &sim.grid;
         let (n, st) = (self.p.n, self.p.stride);
         let d_inv = 4.0 * grid.inv_dx * grid.inv_dx;
         let (head, tail) = self.p.vcf.split_at_mut(F * st);
-        let c: [&[T]; 9] = fields(head, st, C);
+        let (c, f0): ([&[T]; 9], Option<[&[T]; 9]>) = match src {
+            Some(s) => (fields(&s.vcf, st, C), Some(fields(&s.vcf, st, F))),
+            None => (fields(head, st, C), None),
+        };
         let f: [&mut [T]; 9] = fields_mut(tail, st, 0);
         let b = &mut self.b;
-        let a: [&mut [T]; 9] = fields_mut(&mut b.a, st, 0);
+        let work = &mut b.work;
         let cuts: Vec<usize> = (0..st.div_ceil(STRESS_CHUNK))
             .map(|k| k * STRESS_CHUNK)
             .chain(std::iter::once(st))
             .collect();
+        let a = split_fields(fields_mut::<T, 9>(&mut work.a, st, 0), &cuts);
+        let kept: Vec<Kept<'_, T>> = if self.keep {
+            let taus: Vec<Option<[&mut [T]; 9]>> = if Self::KEEP_TAU {
+                split_fields(fields_mut::<T, 9>(&mut work.tau, st, 0), &cuts)
+                    .into_iter()
+                    .map(Some)
+                    .collect()
+            } else {
+                (0..cuts.len() - 1).map(|_| None).collect()
+            };
+            taus.into_iter()
+                .zip(work.aux.chunks_mut(STRESS_CHUNK))
+                .map(Some)
+                .collect()
+        } else {
+            (0..cuts.len() - 1).map(|_| None).collect()
+        };
         let model = &sim.model;
         let mat = &self.mat;
         let (mass, volume, mu, lam) = (&b.mass, &b.volume, &b.mu, &b.lam);
         let uniform = self.uniform;
         split_fields(f, &cuts)
             .into_par_iter()
-            .zip(split_fields(a, &cuts))
+            .zip(a)
+            .zip(kept)
             .enumerate()
-            .map(|(k, (f, a))| {
+            .map(|(k, ((f, a), keep))| {
                 let r = cuts[k]..cuts[k + 1];
                 let real = n.saturating_sub(r.start).min(r.len());
                 let rr = r.start..r.start + real;
-                // The f64 material is kept only for the per-particle models.
                 let family = if mat.family.is_empty() {
                     &mat.family[..]
                 } else {
@@ -399,16 +555,17 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
                     real,
                     uniform,
                     c: c.map(|x| &x[r.clone()]),
-                    mass: &mass[r.clone()],
-                    volume: &volume[r.clone()],
-                    mu: &mu[r.clone()],
-                    lam: &lam[r.clone()],
+                    mass: per_slot(mass, r.clone(), uniform),
+                    volume: per_slot(volume, r.clone(), uniform),
+                    mu: per_slot(mu, r.clone(), uniform),
+                    lam: per_slot(lam, r.clone(), uniform),
                     mu64: part(&mat.mu, rr.clone()),
                     lam64: part(&mat.lam, rr),
                     family,
+                    f0: f0.map(|f0| f0.map(|x| &x[r.clone()])),
                     f,
                     a,
-                    keep: None,
+                    keep,
                 })
             })
             .reduce(|| false, |x, y| x | y)
@@ -416,31 +573,35 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
 
     /// Steps 5–6: P2G of `x, v, A` (and the forces' momentum at time `t`) into the nodes of
     /// the particles' box, then the grid update.
-    fn particles_to_grid(&mut self, isa: Isa, t: f64) {
+    fn particles_to_grid(&mut self, isa: Isa, t: f64, src: Option<&Soa<T>>) {
         let sim = self.sim;
         let grid = &sim.grid;
         let (n, st) = (self.p.n, self.p.stride);
         let dt = sim.config.dt;
-        let extra = extra_momentum(&self.slot_forces, n, t, dt);
         let b = &mut self.b;
-        if let Some(e) = &extra {
-            b.extra.clear();
-            b.extra.resize(3 * st, T::of(0.0));
+        let work = &mut b.work;
+        work.extra = extra_momentum(&self.slot_forces, n, t, dt).map(|e| {
+            let mut out = std::mem::take(&mut work.extra).unwrap_or_default();
+            out.clear();
+            out.resize(3 * st, T::of(0.0));
             for (i, m) in e.iter().enumerate() {
                 for d in 0..3 {
-                    b.extra[d * st + i] = T::of(m[d]);
+                    out[d * st + i] = T::of(m[d]);
                 }
             }
-        }
-        b.active.fill(grid, &mut b.nodes, [T::of(0.0); 4]);
-        b.active = b.groups.touched.clone();
-        let x: [&[T]; 3] = fields(&self.p.x, st, 0);
-        let v: [&[T]; 3] = fields(&self.p.vcf, st, V);
-        let a: [&[T]; 9] = fields(&b.a, st, 0);
-        let extra = extra.as_ref().map(|_| fields::<T, 3>(&b.extra, st, 0));
+            out
+        });
+        work.active.fill(grid, &mut work.nodes, [T::of(0.0); 4]);
+        work.active = work.groups.touched.clone();
+        let s = src.unwrap_or(&self.p);
+        let x: [&[T]; 3] = fields(&s.x, st, 0);
+        let v: [&[T]; 3] = fields(&s.vcf, st, V);
+        let a: [&[T]; 9] = fields(&work.a, st, 0);
+        let extra = work.extra.as_ref().map(|e| fields::<T, 3>(e, st, 0));
         let mass = &b.mass;
-        b.groups
-            .scatter(grid, &mut b.nodes, |groups, piece, first| {
+        let uniform_mass = self.uniform;
+        work.groups
+            .scatter(grid, &mut work.nodes, |groups, piece, first| {
                 isa.run_wide(P2gTask {
                     grid,
                     groups,
@@ -448,39 +609,41 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
                     v,
                     a,
                     mass,
+                    uniform_mass,
                     extra,
                     piece,
                     first,
                 })
             });
-        grid_update(
+        work.v_max = grid_update(
             grid,
-            &b.nodes,
-            &b.active,
+            &work.nodes,
+            &work.active,
             dt,
             sim.config.gravity,
             &sim.config.boundaries,
-            &mut b.vgrid,
+            &mut work.vgrid,
         );
     }
 
     /// Step 7: G2P, `x ← hold(x + dt v)` (into `x_next`, then swapped in); returns the
     /// particles held and whether some new value is NaN/Inf.
-    fn g2p(&mut self, isa: Isa) -> (usize, bool) {
+    fn g2p(&mut self, isa: Isa, src: Option<&Soa<T>>) -> (usize, bool) {
         let grid = &self.sim.grid;
         let (n, st) = (self.p.n, self.p.stride);
-        let tasks = self.b.groups.tasks(G2P_CHUNK);
+        let tasks = self.b.work.groups.tasks(G2P_CHUNK);
         let cuts: Vec<usize> = tasks
             .iter()
             .map(|t| t.1)
             .chain(std::iter::once(n))
             .collect();
-        let x_old: [&[T]; 3] = fields(&self.p.x, st, 0);
         let x: [&mut [T]; 3] = fields_mut(&mut self.b.x_next, st, 0);
-        let (vc, _) = self.p.vcf.split_at_mut(F * st);
+        let (x_own, vcf) = (&self.p.x, &mut self.p.vcf);
+        let x_old: [&[T]; 3] = fields(src.map_or(x_own, |s| &s.x), st, 0);
+        let (vc, _) = vcf.split_at_mut(F * st);
         let vc: [&mut [T]; 12] = fields_mut(vc, st, 0);
         let [v0, v1, v2, c0, c1, c2, c3, c4, c5, c6, c7, c8] = vc;
-        let vgrid = bytemuck::cast_slice(&self.b.vgrid);
+        let vgrid = bytemuck::cast_slice(&self.b.work.vgrid);
         let (lo, hi, dt) = (self.lo, self.hi, self.sim.config.dt);
         let out = split_fields(x, &cuts)
             .into_par_iter()
@@ -505,23 +668,61 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         out
     }
 
-    /// One substep at time `t` (s); returns the particles held at the domain edge and whether
-    /// some new value is NaN/Inf. `resort`: sort the particles again when their groups have
-    /// broken up ([`RESORT_GROWTH`]).
-    pub(crate) fn substep(&mut self, t: f64, resort: bool) -> (usize, bool) {
+    /// Steps 1–6 of the substep at time `t` from the current groups: the intermediates of
+    /// the substep in the work buffers, `F` updated; returns whether some new `F` is NaN/Inf.
+    pub(crate) fn grid_step(&mut self, t: f64) -> bool {
+        self.grid_from(t, None)
+    }
+
+    /// [`Self::grid_step`] reading the state `src` when given (the new `F` goes to the
+    /// engine's state).
+    pub(crate) fn grid_from(&mut self, t: f64, src: Option<&Soa<T>>) -> bool {
         let isa = Isa::detect();
-        self.b.groups.rebuild(&self.sim.grid, &self.p);
-        let groups = self.b.groups.list.len();
-        if self.sorted_groups == 0 {
-            self.sorted_groups = groups;
-        } else if resort && groups as f64 > RESORT_GROWTH * self.sorted_groups as f64 {
-            self.resort();
-            self.sorted_groups = self.b.groups.list.len();
-        }
-        let bad_f = self.stress(isa);
-        self.particles_to_grid(isa, t);
-        let (held, bad) = self.g2p(isa);
+        let bad = self.stress(isa, src);
+        self.particles_to_grid(isa, t, src);
+        bad
+    }
+
+    /// One substep at time `t` (s) from the current groups ([`Self::regroup`]); returns the
+    /// particles held at the domain edge and whether some new value is NaN/Inf.
+    pub(crate) fn step(&mut self, t: f64) -> (usize, bool) {
+        self.step_from(t, None)
+    }
+
+    /// [`Self::step`] from the state `src` (its groups already built) into the engine's state
+    /// when given: every field of the engine's state is written, so it needs no copy first.
+    pub(crate) fn step_from(&mut self, t: f64, src: Option<&Soa<T>>) -> (usize, bool) {
+        let bad_f = self.grid_from(t, src);
+        let (held, bad) = self.g2p(Isa::detect(), src);
         (held, bad || bad_f)
+    }
+
+    /// One substep at time `t` (s), regrouping first (and re-sorting when `resort`).
+    pub(crate) fn substep(&mut self, t: f64, resort: bool) -> (usize, bool) {
+        self.regroup(resort);
+        self.step(t)
+    }
+
+    /// The work buffers, replaced by `with` (a spare set, or empty).
+    pub(crate) fn take_work(&mut self, with: Work<T>) -> Work<T> {
+        let w = std::mem::replace(&mut self.b.work, with);
+        self.b
+            .work
+            .fit(self.p.n, &self.sim.grid, self.keep, Self::KEEP_TAU);
+        w
+    }
+
+    /// The work buffers.
+    pub(crate) fn work(&self) -> &Work<T> {
+        &self.b.work
+    }
+
+    /// Per-particle mass, volume, μ, λ (slot order, padded; one value when uniform), the
+    /// slot-order `f64` material (empty unless a per-particle model needs it), and whether
+    /// uniform.
+    pub(crate) fn material(&self) -> ([&[T]; 4], &Material, bool) {
+        let b = &self.b;
+        ([&b.mass, &b.volume, &b.mu, &b.lam], &self.mat, self.uniform)
     }
 }
 

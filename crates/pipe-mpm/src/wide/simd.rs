@@ -240,6 +240,18 @@ pub(crate) trait Wide: Copy + Send + Sync {
         self.select_gt(self.c(n as f64), self.vector(iota), v, self.zero())
     }
 
+    /// The first `T::N` values of `s`, or all of a shorter `s` with the other lanes 0.
+    #[inline(always)]
+    fn load_part(self, s: &[Self::T]) -> Self::V {
+        if s.len() >= Self::T::N {
+            self.load(s)
+        } else {
+            let mut a = [Self::T::default(); 8];
+            a[..s.len()].copy_from_slice(s);
+            self.vector(a)
+        }
+    }
+
     /// Writes the first `n` lanes to `s[..n]`.
     #[inline(always)]
     fn store_n(self, v: Self::V, s: &mut [Self::T], n: usize) {

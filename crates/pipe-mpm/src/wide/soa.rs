@@ -58,6 +58,32 @@ impl<T: Real> Soa<T> {
         }
     }
 
+    /// `n` particles, every entry 0 (a gradient state).
+    pub fn zeros(n: usize) -> Self {
+        let stride = padded(n);
+        Self {
+            n,
+            stride,
+            x: vec![T::of(0.0); 3 * stride],
+            vcf: vec![T::of(0.0); VCF * stride],
+        }
+    }
+
+    /// A gradient state in the caller's order as slot order `ids` (slot `i` holds the
+    /// caller's `ids[i]`), padding 0.
+    pub fn from_grad(g: &crate::state::StateGrad, ids: &[u32]) -> Self {
+        let s = State {
+            x: g.x.clone(),
+            v: g.v.clone(),
+            c: g.c.clone(),
+            f: g.f.clone(),
+        };
+        let caller = Self::from_state(&s, DVec3::ZERO, None);
+        let mut out = Self::zeros(g.len());
+        caller.permute_into(ids, &mut out);
+        out
+    }
+
     /// Position field `a` (all `stride` entries).
     #[inline(always)]
     pub fn x(&self, a: usize) -> &[T] {

@@ -246,6 +246,9 @@ fn per_particle<W: Wide>(w: W, v: &[W::T], i: usize, uniform: bool) -> W::V {
     }
 }
 
+/// Where the stress pass keeps τ (per-particle models only) and the model's scalar, if at all.
+pub(crate) type Kept<'a, T> = Option<(Option<[&'a mut [T]; 9]>, &'a mut [T])>;
+
 /// One task of the stress pass: particles `0..len` of its slices (`len` a multiple of the
 /// lanes; the first `real` are particles, the rest padding at rest).
 pub(crate) struct StressTask<'a, T, M> {
@@ -265,12 +268,14 @@ pub(crate) struct StressTask<'a, T, M> {
     pub mu64: &'a [f64],
     pub lam64: &'a [f64],
     pub family: &'a [FamilyParams],
-    /// `F` in, new `F` out.
+    /// `F` in (when separate from the output) and new `F` out (in place otherwise).
+    pub f0: Option<[&'a [T]; 9]>,
     pub f: [&'a mut [T]; 9],
     /// `A` out.
     pub a: [&'a mut [T]; 9],
-    /// τ and the model's scalar ([`Constitutive::update_with_aux`]) out, when kept.
-    pub keep: Option<([&'a mut [T]; 9], &'a mut [T])>,
+    /// τ (for the per-particle models; the lane models' adjoints recompute it) and the
+    /// model's scalar ([`Constitutive::update_with_aux`]) out, when kept.
+    pub keep: Kept<'a, T>,
 }
 
 impl<T: Real, M: Constitutive> WideOp<T> for StressTask<'_, T, M> {
@@ -295,7 +300,10 @@ impl<T: Real, M: Constitutive> StressTask<'_, T, M> {
         let mut bad = 0;
         for i in (0..self.f[0].len()).step_by(n) {
             let c: Mat<W> = arr!(9, |j| w.load(&self.c[j][i..]));
-            let f0: Mat<W> = arr!(9, |j| w.load(&self.f[j][i..]));
+            let f0: Mat<W> = match &self.f0 {
+                Some(f0) => arr!(9, |j| w.load(&f0[j][i..])),
+                None => arr!(9, |j| w.load(&self.f[j][i..])),
+            };
             let ft = predict(w, &c, &f0, dt);
             let u = self.uniform;
             let (mu, lam) = (
@@ -314,8 +322,10 @@ impl<T: Real, M: Constitutive> StressTask<'_, T, M> {
                 w.store(w.fma(kv, tau[j], w.mul(m, c[j])), &mut self.a[j][i..]);
             }
             if let Some((t, a)) = &mut self.keep {
-                for j in 0..9 {
-                    w.store(tau[j], &mut t[j][i..]);
+                if let Some(t) = t {
+                    for j in 0..9 {
+                        w.store(tau[j], &mut t[j][i..]);
+                    }
                 }
                 w.store(aux, &mut a[i..]);
             }
@@ -333,21 +343,27 @@ impl<T: Real, M: Constitutive> StressTask<'_, T, M> {
                 }))
             };
             let c = at(self.c);
-            let f0 = at(self.f.each_ref().map(|x| &**x));
+            let f0 = match self.f0 {
+                Some(f0) => at(f0),
+                None => at(self.f.each_ref().map(|x| &**x)),
+            };
             let model = particle_model(self.model, self.family, p);
             let ft = model.predict(&c, &f0, self.dt);
             let (f_new, tau, aux) =
                 model.update_with_aux(&ft, &c, self.mu64[p], self.lam64[p], self.dt);
             bad |= !f_new.is_finite();
-            let a = tau * (-self.dt * self.volume[p].f64() * self.d_inv) + c * self.mass[p].f64();
+            let q = if self.uniform { 0 } else { p };
+            let a = tau * (-self.dt * self.volume[q].f64() * self.d_inv) + c * self.mass[q].f64();
             let (fr, ar, tr) = (to_rows(&f_new), to_rows(&a), to_rows(&tau));
             for j in 0..9 {
                 self.f[j][p] = T::of(fr[j / 3][j % 3]);
                 self.a[j][p] = T::of(ar[j / 3][j % 3]);
             }
             if let Some((t, x)) = &mut self.keep {
-                for j in 0..9 {
-                    t[j][p] = T::of(tr[j / 3][j % 3]);
+                if let Some(t) = t {
+                    for j in 0..9 {
+                        t[j][p] = T::of(tr[j / 3][j % 3]);
+                    }
                 }
                 x[p] = T::of(aux);
             }

@@ -60,7 +60,9 @@ pub(crate) struct P2gTask<'a, T> {
     pub x: [&'a [T]; 3],
     pub v: [&'a [T]; 3],
     pub a: [&'a [T]; 9],
+    /// Per-particle mass, or one value for all (`uniform_mass`).
     pub mass: &'a [T],
+    pub uniform_mass: bool,
     /// Extra momentum per particle (forces, impulses), when any.
     pub extra: Option<[&'a [T]; 3]>,
     pub piece: &'a mut [[T; 4]],
@@ -79,6 +81,7 @@ impl<T: Real> WideOp<T> for P2gTask<'_, T> {
             v,
             a,
             mass,
+            uniform_mass,
             extra,
             piece,
             first,
@@ -94,7 +97,11 @@ impl<T: Real> WideOp<T> for P2gTask<'_, T> {
             let (wy, wz) = (st[1].0, st[2].0);
             let d: [[W::V; 3]; 3] = arr!(3, |ax| arr!(3, |i| w.mul(st[ax].1[i], dx)));
             let am: [W::V; 9] = arr!(9, |k| w.load(&a[k][s..]));
-            let m = w.load(&mass[s..]);
+            let m = if uniform_mass {
+                w.splat(mass[0])
+            } else {
+                w.load(&mass[s..])
+            };
             let mom: [W::V; 3] = arr!(3, |r| {
                 let mv = w.mul(m, w.load(&v[r][s..]));
                 match &extra {
@@ -134,6 +141,52 @@ impl<T: Real> WideOp<T> for P2gTask<'_, T> {
             }
         }
     }
+}
+
+/// `v_p = Σ w v_i` and `Σ w v_i (a − fx)ᵀ` (cells; `C_p` is `4/dx` times it) of a group's
+/// lanes from node velocities `[vx, vy, vz, 0]` (`vgrid`), along the separable stencil: per
+/// row `(i, j)`, `Σ_k wz_k v_k` and `Σ_k wz_k (k − fz) v_k`, then the sums over `j` and `i`.
+#[inline(always)]
+pub(crate) fn gather<W: Wide>(
+    w: W,
+    grid: &GridSpec,
+    vgrid: &[W::T],
+    base: [usize; 3],
+    st: &[Axis<W>; 3],
+) -> ([W::V; 3], [[W::V; 3]; 3]) {
+    // wd = w (a − fx): the weights times the node offsets (cells).
+    let wd: [[W::V; 3]; 3] = arr!(3, |a| arr!(3, |i| w.mul(st[a].0[i], st[a].1[i])));
+    let (wx, wy, wz) = (st[0].0, st[1].0, st[2].0);
+    let zero = w.zero();
+    let mut vel = [zero; 3];
+    let mut b = [[zero; 3]; 3];
+    for i in 0..3 {
+        let (mut u, mut uy, mut uz) = ([zero; 3], [zero; 3], [zero; 3]);
+        for j in 0..3 {
+            let row = 4 * grid.linear([base[0] + i, base[1] + j, base[2]]);
+            let nodes = &vgrid[row..row + 12];
+            let (mut sm, mut tm) = ([zero; 3], [zero; 3]);
+            for k in 0..3 {
+                for r in 0..3 {
+                    let gv = w.splat(nodes[4 * k + r]);
+                    sm[r] = w.fma(wz[k], gv, sm[r]);
+                    tm[r] = w.fma(wd[2][k], gv, tm[r]);
+                }
+            }
+            for r in 0..3 {
+                u[r] = w.fma(wy[j], sm[r], u[r]);
+                uy[r] = w.fma(wd[1][j], sm[r], uy[r]);
+                uz[r] = w.fma(wy[j], tm[r], uz[r]);
+            }
+        }
+        for r in 0..3 {
+            vel[r] = w.fma(wx[i], u[r], vel[r]);
+            b[r][0] = w.fma(wd[0][i], u[r], b[r][0]);
+            b[r][1] = w.fma(wx[i], uy[r], b[r][1]);
+            b[r][2] = w.fma(wx[i], uz[r], b[r][2]);
+        }
+    }
+    (vel, b)
 }
 
 /// Outputs of G2P for one task's slots `s0..`: new `x, v, C`.
@@ -205,38 +258,7 @@ impl<T: Real> WideOp<T> for G2pTask<'_, T> {
             let st: [Axis<W>; 3] = arr!(3, |a| {
                 weights(w, w.sub(w.mul(x[a], inv), w.splat(T::of(base[a] as f64))))
             });
-            // wd = w (a − fx): the weights times the node offsets (cells).
-            let wd: [[W::V; 3]; 3] = arr!(3, |a| arr!(3, |i| w.mul(st[a].0[i], st[a].1[i])));
-            let (wx, wy, wz) = (st[0].0, st[1].0, st[2].0);
-            let zero = w.zero();
-            let mut vel = [zero; 3];
-            let mut b = [[zero; 3]; 3];
-            for i in 0..3 {
-                let (mut u, mut uy, mut uz) = ([zero; 3], [zero; 3], [zero; 3]);
-                for j in 0..3 {
-                    let row = 4 * grid.linear([base[0] + i, base[1] + j, base[2]]);
-                    let nodes = &vgrid[row..row + 12];
-                    let (mut sm, mut tm) = ([zero; 3], [zero; 3]);
-                    for k in 0..3 {
-                        for r in 0..3 {
-                            let gv = w.splat(nodes[4 * k + r]);
-                            sm[r] = w.fma(wz[k], gv, sm[r]);
-                            tm[r] = w.fma(wd[2][k], gv, tm[r]);
-                        }
-                    }
-                    for r in 0..3 {
-                        u[r] = w.fma(wy[j], sm[r], u[r]);
-                        uy[r] = w.fma(wd[1][j], sm[r], uy[r]);
-                        uz[r] = w.fma(wy[j], tm[r], uz[r]);
-                    }
-                }
-                for r in 0..3 {
-                    vel[r] = w.fma(wx[i], u[r], vel[r]);
-                    b[r][0] = w.fma(wd[0][i], u[r], b[r][0]);
-                    b[r][1] = w.fma(wx[i], uy[r], b[r][1]);
-                    b[r][2] = w.fma(wx[i], uz[r], b[r][2]);
-                }
-            }
+            let (vel, b) = gather(w, grid, vgrid, base, &st);
             let mut moved = 0u32;
             let lanes = if gi == last {
                 n

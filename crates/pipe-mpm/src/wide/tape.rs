@@ -1,0 +1,809 @@
+//! Checkpointed forward and backward passes on the vectorised engine.
+//!
+//! The forward pass keeps the state every `every` substeps (a checkpoint). A taped run keeps
+//! the slot order of its start (no re-sorting), so the sums run in one order whatever the
+//! checkpoint interval and the gradients do not depend on it, bit for bit. The backward pass reverses one segment at a time from its checkpoint, recomputing
+//! states with at most `snapshots` of them alive (the binomial schedule of
+//! `crate::adjoint::schedule`) and keeping the intermediates of recomputed substeps when a
+//! segment fits in the snapshots; each reversed substep is the adjoint chain of
+//! [`super::adjoint`].
+
+use glam::{DMat3, DVec3};
+use rayon::prelude::*;
+
+use super::adjoint::{
+    G2pAdjTask, ModelAdjGrad, ModelAdjTask, P2gAdjOut, P2gAdjTask, grid_update_adjoint,
+};
+use super::groups::Group;
+use super::simd::{Precise, Real};
+use super::soa::{C, F, Soa, V};
+use super::{
+    Buffers, Engine, G2P_CHUNK, STRESS_CHUNK, Work, fields, fields_mut, part, per_slot,
+    split_fields,
+};
+use crate::adjoint::schedule::Schedule;
+use crate::error::MpmError;
+use crate::grid::NodeBox;
+use crate::isa::Isa;
+use crate::models::Constitutive;
+use crate::sim::{RunReport, Simulator};
+use crate::state::{FamilyGrad, Material, MaterialGrad, State, StateGrad};
+
+/// A state and its slot order (slot `i` holds the caller's particle `ids[i]`).
+#[derive(Debug, Clone)]
+pub(crate) struct Checkpoint<T> {
+    pub p: Soa<T>,
+    pub ids: Vec<u32>,
+}
+
+impl<T: Real> Checkpoint<T> {
+    /// Slot of each of the caller's particles.
+    fn rank(&self) -> Vec<u32> {
+        let mut r = vec![0u32; self.ids.len()];
+        for (i, &p) in self.ids.iter().enumerate() {
+            r[p as usize] = i as u32;
+        }
+        r
+    }
+
+    /// The state in the caller's order (positions shifted by `+origin`, m).
+    pub fn state(&self, origin: DVec3) -> State {
+        let mut out = Soa::new(self.p.n);
+        self.p.permute_into(&self.rank(), &mut out);
+        let mut s = State::at_rest(vec![DVec3::ZERO; self.p.n]);
+        out.to_state(origin, &mut s);
+        s
+    }
+}
+
+/// The checkpoints of a forward pass.
+#[derive(Debug, Clone)]
+pub(crate) struct WideTape<T> {
+    /// `checkpoints[j]` = state at substep `j·every`.
+    pub checkpoints: Vec<Checkpoint<T>>,
+    /// State after the last substep.
+    pub last: Checkpoint<T>,
+    /// Position of the grid's first node (m): the states' positions are relative to it.
+    pub origin: DVec3,
+}
+
+/// Runs `n_substeps` from `state` (validated and held; advanced in place), keeping a
+/// checkpoint every `every`; the report `rep` continues.
+pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
+    sim: &Simulator<M>,
+    state: &mut State,
+    mat: &Material,
+    t0: f64,
+    n_substeps: usize,
+    every: usize,
+    rep: &mut RunReport,
+) -> Result<WideTape<T>, MpmError> {
+    let cached = sim.wide_cache.take::<Buffers<T>>().unwrap_or_default();
+    let mut e = Engine::<T, M>::new(sim, state, mat, cached);
+    let mut checkpoints = Vec::with_capacity(n_substeps.div_ceil(every));
+    for k in 0..n_substeps {
+        e.regroup(false);
+        if k.is_multiple_of(every) {
+            checkpoints.push(Checkpoint {
+                p: e.p.clone(),
+                ids: e.ids.clone(),
+            });
+        }
+        let (held, bad) = e.step(t0 + k as f64 * sim.config.dt);
+        if bad {
+            e.write_back(state);
+            let (quantity, particle) = state.first_non_finite().unwrap_or(("x", 0));
+            return Err(MpmError::NonFinite {
+                substep: k,
+                quantity,
+                particle,
+            });
+        }
+        rep.substeps += 1;
+        rep.held += held;
+        rep.max_held = rep.max_held.max(held);
+    }
+    let last = Checkpoint {
+        p: e.p.clone(),
+        ids: e.ids.clone(),
+    };
+    let origin = e.origin;
+    e.write_back(state);
+    sim.wide_cache.put(e.into_buffers());
+    Ok(WideTape {
+        checkpoints,
+        last,
+        origin,
+    })
+}
+
+/// The backward pass's arrays, kept by the simulator between passes (as [`Buffers`] for
+/// runs): the engine's, the adjoint kernels', and released snapshots and intermediates.
+#[derive(Debug)]
+pub(crate) struct BackCache<T> {
+    engine: Buffers<T>,
+    adj: AdjBuffers<T>,
+    soas: Vec<Soa<T>>,
+    works: Vec<Work<T>>,
+}
+
+impl<T> Default for BackCache<T> {
+    fn default() -> Self {
+        Self {
+            engine: Buffers::default(),
+            adj: AdjBuffers::default(),
+            soas: Vec::new(),
+            works: Vec::new(),
+        }
+    }
+}
+
+/// Scratch of the adjoint kernels.
+#[derive(Debug)]
+pub(crate) struct AdjBuffers<T> {
+    /// `[v̄, 0]` per node, zero outside `g_active`.
+    gvgrid: Vec<[T; 4]>,
+    g_active: NodeBox,
+    /// `[m̄v, m̄]` per node.
+    gnodes: Vec<[T; 4]>,
+    /// `x̄` of each group from the G2P adjoint, in slab order.
+    gx_groups: Vec<[[T; 8]; 3]>,
+    /// `Ā` (9 fields) and `Σ w m̄_i` (1) from the P2G adjoint.
+    abar: Vec<T>,
+    sm: Vec<T>,
+}
+
+impl<T> Default for AdjBuffers<T> {
+    fn default() -> Self {
+        Self {
+            gvgrid: Vec::new(),
+            g_active: NodeBox::default(),
+            gnodes: Vec::new(),
+            gx_groups: Vec::new(),
+            abar: Vec::new(),
+            sm: Vec::new(),
+        }
+    }
+}
+
+/// Material gradients in slot order (`f64`, padded like the state).
+#[derive(Debug, Clone)]
+pub(crate) struct MatAcc {
+    pub mass: Vec<f64>,
+    pub volume: Vec<f64>,
+    pub mu: Vec<f64>,
+    pub lam: Vec<f64>,
+    /// Per particle (empty unless the model has family scalars).
+    pub family: Vec<FamilyGrad>,
+}
+
+impl MatAcc {
+    pub fn zeros(stride: usize, family: bool) -> Self {
+        Self {
+            mass: vec![0.0; stride],
+            volume: vec![0.0; stride],
+            mu: vec![0.0; stride],
+            lam: vec![0.0; stride],
+            family: if family {
+                vec![FamilyGrad::default(); stride]
+            } else {
+                Vec::new()
+            },
+        }
+    }
+
+    /// Adds the slot-order gradients (slot `i` = the caller's `ids[i]`) into `g`.
+    pub fn add_into(&self, ids: &[u32], g: &mut MaterialGrad) {
+        for (i, &p) in ids.iter().enumerate() {
+            let p = p as usize;
+            g.mass[p] += self.mass[i];
+            g.volume[p] += self.volume[i];
+            g.mu[p] += self.mu[i];
+            g.lam[p] += self.lam[i];
+        }
+        if !self.family.is_empty() {
+            g.family_per_particle
+                .resize(ids.len(), FamilyGrad::default());
+            for (i, &p) in ids.iter().enumerate() {
+                g.family = g.family + self.family[i];
+                let q = &mut g.family_per_particle[p as usize];
+                *q = *q + self.family[i];
+            }
+        }
+    }
+}
+
+/// The adjoint of the substep whose start state is `s` and intermediates `work` (slot order
+/// of the engine): `g` holds `∂L/∂s_{k+1}` on entry and `∂L/∂s_k` on return, the material
+/// gradients are added to `acc`. Returns whether some new gradient is NaN/Inf.
+pub(crate) fn adjoint_step<T: Precise, M: Constitutive>(
+    e: &Engine<'_, T, M>,
+    s: &Soa<T>,
+    work: &Work<T>,
+    g: &mut Soa<T>,
+    acc: &mut MatAcc,
+    adj: &mut AdjBuffers<T>,
+) -> bool {
+    let sim = e.sim;
+    let grid = &sim.grid;
+    let dt = sim.config.dt;
+    let isa = Isa::detect();
+    let (n, st) = (s.n, s.stride);
+    let groups = &work.groups;
+    // G2P: node gradients v̄_i (scattered) and each group's x̄.
+    if adj.gvgrid.len() == grid.len() {
+        adj.g_active.fill(grid, &mut adj.gvgrid, [T::of(0.0); 4]);
+    } else {
+        adj.gvgrid = vec![[T::of(0.0); 4]; grid.len()];
+    }
+    adj.g_active = work.active.clone();
+    let v_max = work.v_max;
+    let scale = (grid.dims.iter().copied().max().unwrap_or(1) as f64) * grid.dx;
+    // f32 positions: the margin test must also cover the rounding of x + dt v.
+    let eps = if T::N == 8 { 1e-6 } else { 1e-12 };
+    let reach = T::of(dt * v_max * (1.0 + 1e-6) + eps * (1.0 + scale));
+    adj.gx_groups
+        .resize(groups.by_slab.len(), [[T::of(0.0); 8]; 3]);
+    {
+        let x: [&[T]; 3] = fields(&s.x, st, 0);
+        let gx: [&[T]; 3] = fields(&g.x, st, 0);
+        let gv: [&[T]; 3] = fields(&g.vcf, st, V);
+        let gc: [&[T]; 9] = fields(&g.vcf, st, C);
+        let vgrid = bytemuck::cast_slice(&work.vgrid);
+        let (lo, hi) = (e.lo, e.hi);
+        groups.scatter_with(
+            grid,
+            &mut adj.gvgrid,
+            &mut adj.gx_groups,
+            |gs, out_x, piece, first| {
+                isa.run_wide(G2pAdjTask {
+                    grid,
+                    groups: gs,
+                    x,
+                    gx,
+                    gv,
+                    gc,
+                    vgrid,
+                    dt,
+                    lo,
+                    hi,
+                    reach,
+                    piece,
+                    first,
+                    out_x,
+                })
+            },
+        );
+    }
+    for (gr, out) in groups.by_slab.iter().zip(&adj.gx_groups) {
+        let (s0, m) = (gr.start as usize, gr.n as usize);
+        for (a, o) in out.iter().enumerate() {
+            g.x[a * st + s0..a * st + s0 + m].copy_from_slice(&o[..m]);
+        }
+    }
+    // The grid update.
+    grid_update_adjoint(
+        grid,
+        &work.nodes,
+        &adj.gvgrid,
+        &work.active,
+        dt,
+        sim.config.gravity,
+        &sim.config.boundaries,
+        &mut adj.gnodes,
+    );
+    // P2G (a gather per group): x̄ += …, ḡ into v̄'s place, Ā, Σ w m̄_i.
+    if adj.abar.len() != 9 * st {
+        adj.abar = vec![T::of(0.0); 9 * st];
+        adj.sm = vec![T::of(0.0); st];
+    }
+    let ([mass, volume, mu, lam], mat, uniform) = e.material();
+    {
+        let tasks = groups.tasks(G2P_CHUNK);
+        let cuts: Vec<usize> = tasks
+            .iter()
+            .map(|t| t.1)
+            .chain(std::iter::once(n))
+            .collect();
+        let x: [&[T]; 3] = fields(&s.x, st, 0);
+        let v: [&[T]; 3] = fields(&s.vcf, st, V);
+        let a: [&[T]; 9] = fields(&work.a, st, 0);
+        let extra = work.extra.as_ref().map(|x| fields::<T, 3>(x, st, 0));
+        let gnodes = bytemuck::cast_slice(&adj.gnodes);
+        let gx: [&mut [T]; 3] = fields_mut(&mut g.x, st, 0);
+        let gv: [&mut [T]; 3] = fields_mut(&mut g.vcf, st, V);
+        let abar: [&mut [T]; 9] = fields_mut(&mut adj.abar, st, 0);
+        let [sm]: [&mut [T]; 1] = fields_mut(&mut adj.sm, st, 0);
+        split_fields(gx, &cuts)
+            .into_par_iter()
+            .zip(split_fields(gv, &cuts))
+            .zip(split_fields(abar, &cuts))
+            .zip(split_fields([sm], &cuts))
+            .zip(tasks)
+            .for_each(|((((gx, sg), abar), [sm]), (gs, s0, _))| {
+                isa.run_wide(P2gAdjTask {
+                    grid,
+                    groups: gs,
+                    s0,
+                    x,
+                    v,
+                    a,
+                    mass,
+                    uniform_mass: uniform,
+                    extra,
+                    gnodes,
+                    out: P2gAdjOut { gx, sg, abar, sm },
+                })
+            });
+    }
+    // Per particle: v̄, C̄, τ̄, m̄, V̄ and the model's adjoint, in full vectors.
+    let cuts: Vec<usize> = (0..st.div_ceil(STRESS_CHUNK))
+        .map(|k| k * STRESS_CHUNK)
+        .chain(std::iter::once(st))
+        .collect();
+    let d_inv = 4.0 * grid.inv_dx * grid.inv_dx;
+    let v: [&[T]; 3] = fields(&s.vcf, st, V);
+    let c: [&[T]; 9] = fields(&s.vcf, st, C);
+    let f: [&[T]; 9] = fields(&s.vcf, st, F);
+    // τ is kept for the per-particle models only (the lane models' adjoints recompute it).
+    let tau: [&[T]; 9] = if work.tau.is_empty() {
+        [&[]; 9]
+    } else {
+        fields(&work.tau, st, 0)
+    };
+    let abar: [&[T]; 9] = fields(&adj.abar, st, 0);
+    let (gv, rest) = g.vcf.split_at_mut(C * st);
+    let (gc, gf) = rest.split_at_mut(9 * st);
+    let gv: [&mut [T]; 3] = fields_mut(gv, st, 0);
+    let gc: [&mut [T]; 9] = fields_mut(gc, st, 0);
+    let gf: [&mut [T]; 9] = fields_mut(gf, st, 0);
+    let fam = M::HAS_FAMILY_PARAMS;
+    let gfamily: Vec<&mut [FamilyGrad]> = if fam {
+        acc.family.chunks_mut(STRESS_CHUNK).collect()
+    } else {
+        (0..cuts.len() - 1)
+            .map(|_| <&mut [FamilyGrad]>::default())
+            .collect()
+    };
+    split_fields(gv, &cuts)
+        .into_par_iter()
+        .zip(split_fields(gc, &cuts))
+        .zip(split_fields(gf, &cuts))
+        .zip(acc.mass.par_chunks_mut(STRESS_CHUNK))
+        .zip(acc.volume.par_chunks_mut(STRESS_CHUNK))
+        .zip(acc.mu.par_chunks_mut(STRESS_CHUNK))
+        .zip(acc.lam.par_chunks_mut(STRESS_CHUNK))
+        .zip(gfamily)
+        .enumerate()
+        .map(
+            |(k, (((((((gv, gc), gf), gmass), gvolume), gmu), glam), gfamily))| {
+                let r = cuts[k]..cuts[k + 1];
+                let real = n.saturating_sub(r.start).min(r.len());
+                let rr = r.start..r.start + real;
+                let family = if mat.family.is_empty() {
+                    &mat.family[..]
+                } else {
+                    &mat.family[rr.clone()]
+                };
+                isa.run_wide(ModelAdjTask {
+                    model: &sim.model,
+                    dt,
+                    d_inv,
+                    real,
+                    uniform,
+                    v: v.map(|x| &x[r.clone()]),
+                    c: c.map(|x| &x[r.clone()]),
+                    f: f.map(|x| &x[r.clone()]),
+                    tau: tau.map(|x| if x.is_empty() { x } else { &x[r.clone()] }),
+                    aux: &work.aux[r.clone()],
+                    abar: abar.map(|x| &x[r.clone()]),
+                    sm: &adj.sm[r.clone()],
+                    mass: per_slot(mass, r.clone(), uniform),
+                    volume: per_slot(volume, r.clone(), uniform),
+                    mu: per_slot(mu, r.clone(), uniform),
+                    lam: per_slot(lam, r.clone(), uniform),
+                    mu64: part(&mat.mu, rr.clone()),
+                    lam64: part(&mat.lam, rr),
+                    family,
+                    g: ModelAdjGrad {
+                        gv,
+                        gc,
+                        gf,
+                        gmass,
+                        gvolume,
+                        gmu,
+                        glam,
+                        gfamily,
+                    },
+                })
+            },
+        )
+        .reduce(|| false, |x, y| x | y)
+}
+
+/// The state view a seed reads: slot order `ids`, positions relative to `origin`.
+pub(crate) struct SlotState<'a, T> {
+    pub p: &'a Soa<T>,
+    pub ids: &'a [u32],
+    pub origin: DVec3,
+}
+
+impl<T: Real> crate::adjoint::SeedSource for SlotState<'_, T> {
+    fn state(&self) -> State {
+        Checkpoint {
+            p: self.p.clone(),
+            ids: self.ids.to_vec(),
+        }
+        .state(self.origin)
+    }
+}
+
+/// The running gradient a seed adds into: slot order, the caller's particle `p` in slot
+/// `rank[p]`.
+pub(crate) struct SlotGrad<'a, T> {
+    pub g: &'a mut Soa<T>,
+    pub rank: &'a [u32],
+}
+
+impl<T: Real> SlotGrad<'_, T> {
+    fn add(&mut self, p: usize, field: usize, v: f64, x: bool) {
+        let st = self.g.stride;
+        let i = self.rank[p] as usize;
+        let a = if x { &mut self.g.x } else { &mut self.g.vcf };
+        let e = &mut a[field * st + i];
+        *e = *e + T::of(v);
+    }
+
+    fn add_mat(&mut self, p: usize, field: usize, m: &DMat3) {
+        let rows = crate::math::to_rows(m);
+        for (k, r) in rows.iter().flatten().enumerate() {
+            self.add(p, field + k, *r, false);
+        }
+    }
+}
+
+impl<T: Real> crate::adjoint::GradSink for SlotGrad<'_, T> {
+    fn len(&self) -> usize {
+        self.rank.len()
+    }
+    fn add_x(&mut self, p: usize, g: DVec3) {
+        for a in 0..3 {
+            self.add(p, a, g[a], true);
+        }
+    }
+    fn add_v(&mut self, p: usize, g: DVec3) {
+        for a in 0..3 {
+            self.add(p, V + a, g[a], false);
+        }
+    }
+    fn add_c(&mut self, p: usize, g: DMat3) {
+        self.add_mat(p, C, &g);
+    }
+    fn add_f(&mut self, p: usize, g: DMat3) {
+        self.add_mat(p, F, &g);
+    }
+}
+
+/// A gradient state in slot order (`ids`) as the caller's [`StateGrad`].
+pub(crate) fn to_state_grad<T: Real>(g: &Soa<T>, ids: &[u32]) -> StateGrad {
+    let n = ids.len();
+    let st = g.stride;
+    let mut out = StateGrad::zeros(n);
+    let (x, vcf) = (&g.x, &g.vcf);
+    let at = |f: &[T], field: usize, i: usize| f[field * st + i].f64();
+    let mat = |base: usize, i: usize| {
+        DMat3::from_cols_array(&[
+            at(vcf, base, i),
+            at(vcf, base + 3, i),
+            at(vcf, base + 6, i),
+            at(vcf, base + 1, i),
+            at(vcf, base + 4, i),
+            at(vcf, base + 7, i),
+            at(vcf, base + 2, i),
+            at(vcf, base + 5, i),
+            at(vcf, base + 8, i),
+        ])
+    };
+    for (i, &p) in ids.iter().enumerate() {
+        let p = p as usize;
+        out.x[p] = DVec3::new(at(x, 0, i), at(x, 1, i), at(x, 2, i));
+        out.v[p] = DVec3::new(at(vcf, V, i), at(vcf, V + 1, i), at(vcf, V + 2, i));
+        out.c[p] = mat(C, i);
+        out.f[p] = mat(F, i);
+    }
+    out
+}
+
+/// The first NaN/Inf of a gradient state (slot order `ids`), as (quantity, caller's index).
+fn first_non_finite<T: Real>(g: &Soa<T>, ids: &[u32]) -> Option<(&'static str, usize)> {
+    to_state_grad(g, ids).first_non_finite()
+}
+
+/// `g` (slot order `from_ids`) reordered to slot order `to_ids`.
+fn reorder<T: Real>(g: &Soa<T>, from_ids: &[u32], to_ids: &[u32]) -> Soa<T> {
+    let mut rank = vec![0u32; from_ids.len()];
+    for (i, &p) in from_ids.iter().enumerate() {
+        rank[p as usize] = i as u32;
+    }
+    let from: Vec<u32> = to_ids.iter().map(|&p| rank[p as usize]).collect();
+    let mut out = Soa::zeros(g.n);
+    g.permute_into(&from, &mut out);
+    out
+}
+
+/// A seed: adds `∂L/∂state_k` at substep `k` given the state.
+pub(crate) type SeedFn<'a> = dyn FnMut(
+        usize,
+        &dyn crate::adjoint::SeedSource,
+        &mut dyn crate::adjoint::GradSink,
+    ) -> Result<(), MpmError>
+    + 'a;
+
+/// Backpropagates through `tape` (substeps `t0 + k dt`, `k < n_substeps`, checkpoints every
+/// `every`); `start` = first substep reversed. Returns `∂L/∂state_start` (caller's order) and
+/// the material gradients.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn backward<T: Precise, M: Constitutive>(
+    sim: &Simulator<M>,
+    tape: &WideTape<T>,
+    mat: &Material,
+    t0: f64,
+    n_substeps: usize,
+    every: usize,
+    start: usize,
+    snapshots: usize,
+    seed: &mut SeedFn<'_>,
+) -> Result<(StateGrad, MaterialGrad), MpmError> {
+    let np = mat.len();
+    let mut cache = sim.adjoint_cache.take::<BackCache<T>>().unwrap_or_default();
+    let p = Engine::<T, M>::soa_from(&mut cache.engine, &tape.last.p);
+    let mut e = Engine::<T, M>::with_state(
+        sim,
+        p,
+        tape.last.ids.clone(),
+        mat,
+        std::mem::take(&mut cache.engine),
+    );
+    e.keep = true;
+    let mut g = Soa::<T>::zeros(np);
+    let mut order_g = tape.last.ids.clone();
+    {
+        let rank = tape.last.rank();
+        let view = SlotState {
+            p: &tape.last.p,
+            ids: &tape.last.ids,
+            origin: tape.origin,
+        };
+        seed(
+            n_substeps,
+            &view,
+            &mut SlotGrad {
+                g: &mut g,
+                rank: &rank,
+            },
+        )?;
+    }
+    let mut gmat = MaterialGrad::zeros(np);
+    // One slot-order accumulator for the whole pass (a taped run keeps one order), so each
+    // particle's material gradient sums its substeps in one sequence whatever the checkpoint
+    // interval.
+    let mut acc = MatAcc::zeros(tape.last.p.stride, M::HAS_FAMILY_PARAMS);
+    let mut acc_ids = tape.last.ids.clone();
+    let plan = Schedule::new(every.min(n_substeps.max(1)), snapshots);
+    let mut adj = std::mem::take(&mut cache.adj);
+    let mut rev = Reverser {
+        t0,
+        dt: sim.config.dt,
+        start,
+        snapshots,
+        plan: &plan,
+        stack: Vec::new(),
+        spare: std::mem::take(&mut cache.soas)
+            .into_iter()
+            .filter(|s| s.n == np)
+            .collect(),
+        spare_work: std::mem::take(&mut cache.works),
+        keep: false,
+    };
+    for (j, ck) in tape.checkpoints.iter().enumerate().rev() {
+        let lo = j * every;
+        let hi = (lo + every).min(n_substeps);
+        if hi <= start {
+            break;
+        }
+        if ck.ids != order_g {
+            g = reorder(&g, &order_g, &ck.ids);
+            order_g.clone_from(&ck.ids);
+        }
+        e.load(ck.p.n, &ck.ids);
+        let rank = ck.rank();
+        if acc_ids != ck.ids {
+            acc.add_into(&acc_ids, &mut gmat);
+            acc = MatAcc::zeros(ck.p.stride, M::HAS_FAMILY_PARAMS);
+            acc_ids.clone_from(&ck.ids);
+        }
+        let mut ctx = Ctx {
+            e: &mut e,
+            ck,
+            rank: &rank,
+            origin: tape.origin,
+            g: &mut g,
+            acc: &mut acc,
+            adj: &mut adj,
+            seed: &mut *seed,
+        };
+        rev.segment(&mut ctx, lo, hi)?;
+    }
+    acc.add_into(&acc_ids, &mut gmat);
+    sim.adjoint_cache.put(BackCache {
+        engine: e.into_buffers(),
+        adj,
+        soas: rev.spare,
+        works: rev.spare_work,
+    });
+    if M::HAS_FAMILY_PARAMS && gmat.family_per_particle.is_empty() {
+        gmat.family_per_particle = vec![FamilyGrad::default(); np];
+    }
+    Ok((to_state_grad(&g, &order_g), gmat))
+}
+
+/// What a reversed substep works on.
+struct Ctx<'c, 'e, 's, T, M: Constitutive> {
+    e: &'c mut Engine<'e, T, M>,
+    ck: &'c Checkpoint<T>,
+    rank: &'c [u32],
+    origin: DVec3,
+    g: &'c mut Soa<T>,
+    acc: &'c mut MatAcc,
+    adj: &'c mut AdjBuffers<T>,
+    seed: &'c mut SeedFn<'s>,
+}
+
+/// The recomputation schedule of one backward pass (the binomial checkpointing of
+/// `crate::adjoint::schedule`).
+struct Reverser<'p, T> {
+    t0: f64,
+    dt: f64,
+    start: usize,
+    snapshots: usize,
+    plan: &'p Schedule,
+    /// Recomputed states, innermost last, and released buffers.
+    stack: Vec<Soa<T>>,
+    spare: Vec<Soa<T>>,
+    spare_work: Vec<Work<T>>,
+    /// Keep each recomputed substep's intermediates (segments of ≤ snapshots + 1).
+    keep: bool,
+}
+
+impl<T: Precise> Reverser<'_, T> {
+    /// Reverses substeps `lo..hi` (only those `≥ start`) from the checkpoint at `lo`.
+    fn segment<M: Constitutive>(
+        &mut self,
+        c: &mut Ctx<'_, '_, '_, T, M>,
+        lo: usize,
+        hi: usize,
+    ) -> Result<(), MpmError> {
+        debug_assert!(self.stack.is_empty());
+        let a = lo.max(self.start);
+        let free = if lo < a {
+            self.snapshots.max(2) - 1
+        } else {
+            self.snapshots
+        };
+        self.keep = hi - a <= free + 1;
+        if lo < a {
+            // Truncated: first recompute the state at `start` (one extra snapshot).
+            self.push(c, lo, a, false);
+            let r = self.reverse(c, a, hi, free);
+            self.pop();
+            return r;
+        }
+        self.reverse(c, a, hi, free)
+    }
+
+    /// Recomputes the state at `to` from the base (at `from`) into a new snapshot; with
+    /// `keep`, returns the intermediates of substep `from` (when `to = from + 1`).
+    fn push<M: Constitutive>(
+        &mut self,
+        c: &mut Ctx<'_, '_, '_, T, M>,
+        from: usize,
+        to: usize,
+        keep: bool,
+    ) -> Option<Work<T>> {
+        let base = self.stack.last().unwrap_or(&c.ck.p);
+        // The first substep reads the base and writes every field of the new buffer (no copy).
+        let mut buf = self.spare.pop().unwrap_or_else(|| Soa::new(base.n));
+        std::mem::swap(&mut c.e.p, &mut buf);
+        c.e.regroup_from(Some(base), false);
+        c.e.step_from(self.t0 + from as f64 * self.dt, Some(base));
+        for k in from + 1..to {
+            c.e.regroup(false);
+            c.e.step(self.t0 + k as f64 * self.dt);
+        }
+        std::mem::swap(&mut c.e.p, &mut buf);
+        self.stack.push(buf);
+        keep.then(|| {
+            let spare = self.spare_work.pop().unwrap_or_default();
+            c.e.take_work(spare)
+        })
+    }
+
+    fn pop(&mut self) {
+        if let Some(s) = self.stack.pop() {
+            self.spare.push(s);
+        }
+    }
+
+    /// Reverses substeps `a..b` whose start state is the base, with `free ≥ 1` snapshots left.
+    fn reverse<M: Constitutive>(
+        &mut self,
+        c: &mut Ctx<'_, '_, '_, T, M>,
+        a: usize,
+        b: usize,
+        free: usize,
+    ) -> Result<(), MpmError> {
+        let keep = self.keep;
+        let mut b = b;
+        let mut kept = None;
+        while b - a > 1 {
+            let m = a + self.plan.split(b - a, free);
+            kept = self.push(c, a, m, keep && m == a + 1);
+            let r = self.reverse(c, m, b, free - 1);
+            self.pop();
+            r?;
+            b = m;
+        }
+        let r = self.step(c, a, kept.as_ref());
+        self.spare_work.extend(kept);
+        r
+    }
+
+    /// Backpropagates substep `k` from its start state (the base), given its intermediates
+    /// when kept, then adds the seed at `k`.
+    fn step<M: Constitutive>(
+        &mut self,
+        c: &mut Ctx<'_, '_, '_, T, M>,
+        k: usize,
+        kept: Option<&Work<T>>,
+    ) -> Result<(), MpmError> {
+        let t = self.t0 + k as f64 * self.dt;
+        let s = self.stack.last().unwrap_or(&c.ck.p);
+        let work = match kept {
+            Some(w) => w,
+            None => {
+                // Recompute the substep's intermediates from `s` (the new F goes to the
+                // engine's scratch state).
+                c.e.regroup_from(Some(s), false);
+                c.e.grid_from(t, Some(s));
+                c.e.work()
+            }
+        };
+        let bad = adjoint_step(c.e, s, work, c.g, c.acc, c.adj);
+        if bad && let Some((quantity, particle)) = first_non_finite(c.g, &c.ck.ids) {
+            return Err(MpmError::NonFinite {
+                substep: k,
+                quantity,
+                particle,
+            });
+        }
+        let view = SlotState {
+            p: s,
+            ids: &c.ck.ids,
+            origin: c.origin,
+        };
+        (c.seed)(
+            k,
+            &view,
+            &mut SlotGrad {
+                g: c.g,
+                rank: c.rank,
+            },
+        )
+    }
+}
+
+/// Particles of `groups` as a slot range.
+#[allow(dead_code)]
+fn slots(g: &Group) -> std::ops::Range<usize> {
+    g.start as usize..(g.start + g.n) as usize
+}
