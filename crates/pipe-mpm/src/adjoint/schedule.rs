@@ -8,11 +8,10 @@
 //! [`Schedule`] tabulates the minimising `m` by dynamic programming.
 
 /// Snapshots (recomputed states) alive at once while a segment is reversed, besides the tape.
-/// Six keep a 14-frame rollout of 20k particles under twice its frame checkpoints (1.87× with
-/// seeds added in place, `Simulator::backward_into`; about 1.95× with a fresh gradient state
-/// returned per seed) while costing 2.3 (k = 50) to 3.8 (k = 270) recomputed substeps per
-/// reversed substep (four: 2.9 to 5.3).
-pub const SEGMENT_SNAPSHOTS: usize = 6;
+/// Four keep a 14-frame `f64` rollout of 20k particles (50 substeps per frame) at 1.97× its
+/// frame checkpoints, peak RSS included (six: 2.12×), at 2.9 (k = 50) to 5.3 (k = 270)
+/// recomputed substeps per reversed substep (six: 2.3 to 3.8).
+pub const SEGMENT_SNAPSHOTS: usize = 4;
 
 /// Optimal split points `m(k, c)` for `k ≤ max_k` substeps and `1 ≤ c ≤ max_c` snapshots.
 #[derive(Debug, Clone)]

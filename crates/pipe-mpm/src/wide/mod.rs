@@ -223,7 +223,7 @@ pub(crate) struct Buffers<T> {
     /// The state.
     p: Option<Soa<T>>,
     /// The buffer a re-sort or the write-back fills (then swapped with `p`).
-    spare: Option<Soa<T>>,
+    pub(crate) spare: Option<Soa<T>>,
     /// The positions the next substep writes (then swapped with `p.x`).
     x_next: Vec<T>,
     /// Per-particle mass, volume, μ, λ in slot order.

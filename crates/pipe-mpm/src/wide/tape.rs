@@ -555,7 +555,13 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
     seed: &mut SeedFn<'_>,
 ) -> Result<(StateGrad, MaterialGrad), MpmError> {
     let np = mat.len();
-    let mut cache = sim.adjoint_cache.take::<BackCache<T>>().unwrap_or_default();
+    // The backward pass's arrays from the last one, else the forward runs' (one set alive).
+    let mut cache = sim.adjoint_cache.take::<BackCache<T>>().unwrap_or_else(|| BackCache {
+        engine: sim.wide_cache.take::<Buffers<T>>().unwrap_or_default(),
+        ..BackCache::default()
+    });
+    // A backward pass neither re-sorts nor writes back: no spare state.
+    cache.engine.spare = None;
     let p = Engine::<T, M>::soa_from(&mut cache.engine, &tape.last.p);
     let mut e = Engine::<T, M>::with_state(
         sim,
