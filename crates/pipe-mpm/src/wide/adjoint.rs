@@ -14,7 +14,7 @@ use glam::DMat3;
 use super::groups::Group;
 use super::simd::{Real, Wide, WideOp};
 use super::stress::{Mat, cofactor, ddot, det_with, mul, mul_at, mul_bt, polar, predict};
-use super::transfer::{Axis, gather, weights};
+use super::transfer::{Axis, gather, momentum, weights};
 use crate::boundary::Boundaries;
 use crate::grid::{GridSpec, NodeBox};
 use crate::grid_update::mass_threshold;
@@ -306,18 +306,7 @@ impl<T: Real> WideOp<T> for P2gAdjTask<'_, T> {
             let n = g.n as usize;
             let (_, base, st, dw) = stencil(w, grid, g, x);
             let am: Mat<W> = arr!(9, |k| w.load(&a[k][s..]));
-            let m = if uniform_mass {
-                w.splat(mass[0])
-            } else {
-                w.load(&mass[s..])
-            };
-            let mom: [W::V; 3] = arr!(3, |r| {
-                let mv = w.mul(m, w.load(&v[r][s..]));
-                match &extra {
-                    Some(e) => w.add(mv, w.load(&e[r][s..])),
-                    None => mv,
-                }
-            });
+            let (m, mom) = momentum(w, mass, uniform_mass, v, extra, s);
             let (e0, e1, e2) = (st[0].1, st[1].1, st[2].1);
             let (w0, w1, w2) = (st[0].0, st[1].0, st[2].0);
             // A d = dx (A₀ e0 + A₁ e1 + A₂ e2); the z column per node.

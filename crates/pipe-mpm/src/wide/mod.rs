@@ -703,6 +703,30 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         self.step(t)
     }
 
+    /// Counts substep `k`'s `(held, bad)` into `rep`; when some value went NaN/Inf, writes the
+    /// state back to `state` and names the first offending particle.
+    pub(crate) fn record(
+        &mut self,
+        k: usize,
+        (held, bad): (usize, bool),
+        state: &mut State,
+        rep: &mut RunReport,
+    ) -> Result<(), MpmError> {
+        if bad {
+            self.write_back(state);
+            let (quantity, particle) = state.first_non_finite().unwrap_or(("x", 0));
+            return Err(MpmError::NonFinite {
+                substep: k,
+                quantity,
+                particle,
+            });
+        }
+        rep.substeps += 1;
+        rep.held += held;
+        rep.max_held = rep.max_held.max(held);
+        Ok(())
+    }
+
     /// The work buffers, replaced by `with` (a spare set, or empty).
     pub(crate) fn take_work(&mut self, with: Work<T>) -> Work<T> {
         let w = std::mem::replace(&mut self.b.work, with);
@@ -739,19 +763,8 @@ pub(crate) fn run<T: Precise, M: Constitutive>(
     let cached = sim.wide_cache.take::<Buffers<T>>().unwrap_or_default();
     let mut e = Engine::<T, M>::new(sim, state, mat, cached);
     for k in 0..n_substeps {
-        let (held, bad) = e.substep(t0 + k as f64 * sim.config.dt, true);
-        if bad {
-            e.write_back(state);
-            let (quantity, particle) = state.first_non_finite().unwrap_or(("x", 0));
-            return Err(MpmError::NonFinite {
-                substep: k,
-                quantity,
-                particle,
-            });
-        }
-        rep.substeps += 1;
-        rep.held += held;
-        rep.max_held = rep.max_held.max(held);
+        let outcome = e.substep(t0 + k as f64 * sim.config.dt, true);
+        e.record(k, outcome, state, rep)?;
     }
     e.write_back(state);
     sim.wide_cache.put(e.into_buffers());

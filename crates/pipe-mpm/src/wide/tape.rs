@@ -89,19 +89,8 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
                 ids: e.ids.clone(),
             });
         }
-        let (held, bad) = e.step(t0 + k as f64 * sim.config.dt);
-        if bad {
-            e.write_back(state);
-            let (quantity, particle) = state.first_non_finite().unwrap_or(("x", 0));
-            return Err(MpmError::NonFinite {
-                substep: k,
-                quantity,
-                particle,
-            });
-        }
-        rep.substeps += 1;
-        rep.held += held;
-        rep.max_held = rep.max_held.max(held);
+        let outcome = e.step(t0 + k as f64 * sim.config.dt);
+        e.record(k, outcome, state, rep)?;
     }
     let last = Checkpoint {
         p: e.p.clone(),
@@ -556,10 +545,13 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
 ) -> Result<(StateGrad, MaterialGrad), MpmError> {
     let np = mat.len();
     // The backward pass's arrays from the last one, else the forward runs' (one set alive).
-    let mut cache = sim.adjoint_cache.take::<BackCache<T>>().unwrap_or_else(|| BackCache {
-        engine: sim.wide_cache.take::<Buffers<T>>().unwrap_or_default(),
-        ..BackCache::default()
-    });
+    let mut cache = sim
+        .adjoint_cache
+        .take::<BackCache<T>>()
+        .unwrap_or_else(|| BackCache {
+            engine: sim.wide_cache.take::<Buffers<T>>().unwrap_or_default(),
+            ..BackCache::default()
+        });
     // A backward pass neither re-sorts nor writes back: no spare state.
     cache.engine.spare = None;
     let p = Engine::<T, M>::soa_from(&mut cache.engine, &tape.last.p);

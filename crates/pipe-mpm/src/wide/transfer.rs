@@ -52,6 +52,32 @@ pub(crate) fn group_stencil<W: Wide>(
     (base, fx)
 }
 
+/// The mass and momentum `m v (+ f_ext dt)` of the particles from slot `s` (lanes); `mass`
+/// holds one value for all when `uniform`.
+#[inline(always)]
+pub(crate) fn momentum<W: Wide>(
+    w: W,
+    mass: &[W::T],
+    uniform: bool,
+    v: [&[W::T]; 3],
+    extra: Option<[&[W::T]; 3]>,
+    s: usize,
+) -> (W::V, [W::V; 3]) {
+    let m = if uniform {
+        w.splat(mass[0])
+    } else {
+        w.load(&mass[s..])
+    };
+    let mom = arr!(3, |r| {
+        let mv = w.mul(m, w.load(&v[r][s..]));
+        match &extra {
+            Some(e) => w.add(mv, w.load(&e[r][s..])),
+            None => mv,
+        }
+    });
+    (m, mom)
+}
+
 /// P2G of one slab's groups into its grid piece (starting at x-layer `first`):
 /// `mv_i += w (mom + A (x_i − x_p))`, `m_i += w m`, `mom = m v (+ f_ext dt)`.
 pub(crate) struct P2gTask<'a, T> {
@@ -97,18 +123,7 @@ impl<T: Real> WideOp<T> for P2gTask<'_, T> {
             let (wy, wz) = (st[1].0, st[2].0);
             let d: [[W::V; 3]; 3] = arr!(3, |ax| arr!(3, |i| w.mul(st[ax].1[i], dx)));
             let am: [W::V; 9] = arr!(9, |k| w.load(&a[k][s..]));
-            let m = if uniform_mass {
-                w.splat(mass[0])
-            } else {
-                w.load(&mass[s..])
-            };
-            let mom: [W::V; 3] = arr!(3, |r| {
-                let mv = w.mul(m, w.load(&v[r][s..]));
-                match &extra {
-                    Some(e) => w.add(mv, w.load(&e[r][s..])),
-                    None => mv,
-                }
-            });
+            let (m, mom) = momentum(w, mass, uniform_mass, v, extra, s);
             // Node (i, j, k) gets wx_i wy_j (wz_k (P_i + Q_j) + RW_k), with P_i = mom + A₀ px_i,
             // Q_j = A₁ py_j, RW_k = wz_k A₂ pz_k; and mass wx_i wy_j wz_k m.
             let p: [[W::V; 3]; 3] = arr!(3, |i| arr!(3, |r| w.fma(am[3 * r], d[0][i], mom[r])));
