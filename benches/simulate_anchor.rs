@@ -11,7 +11,8 @@
 //! `cargo bench -p pipe --bench simulate_anchor`
 //!
 //! * `PIPE_BENCH_CASES=fcr_20k,nh_100k` runs some cases; `PIPE_BENCH_THREADS=2` some thread
-//!   counts.
+//!   counts; `PIPE_BENCH_PRECISION=f64` runs `pipe simulate --precision f64` (default `f32`,
+//!   the anchors' precision).
 //! * `ANCHORS_PY=/tmp/anchors-venv/bin/python` (with `ANCHORS_DIR`, default
 //!   `/work/shared/anchors`) also runs the anchors' Taichi script on the same workload right
 //!   after each of ours (same thread count), and Warp's after our 1-thread run, through the
@@ -150,6 +151,11 @@ fn write_inputs(case: &Case, dir: &Path) {
     std::fs::write(dir.join("sim.yaml"), sim).expect("sim.yaml");
 }
 
+/// The precision of our runs (`PIPE_BENCH_PRECISION`, default `f32`).
+fn precision() -> String {
+    std::env::var("PIPE_BENCH_PRECISION").unwrap_or_else(|_| "f32".into())
+}
+
 /// Runs `pipe --threads t simulate` and prints its time per substep.
 fn run_ours(case: &Case, dir: &Path, threads: usize) {
     let out = dir.join(format!("out-{threads}"));
@@ -165,6 +171,8 @@ fn run_ours(case: &Case, dir: &Path, threads: usize) {
         .arg(case.frames.to_string())
         .arg("--out")
         .arg(&out)
+        .arg("--precision")
+        .arg(precision())
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
         .status()
@@ -179,12 +187,13 @@ fn run_ours(case: &Case, dir: &Path, threads: usize) {
     let per_substep_ms = wall * 1e3 / substeps as f64;
     println!(
         "{{\"who\":\"pipe simulate\",\"case\":\"{}\",\"N\":{},\"G\":{},\"threads\":{threads},\
-         \"substeps\":{substeps},\"wall_s\":{wall:.4},\"process_s\":{process_s:.4},\
+         \"precision\":\"{}\",\"substeps\":{substeps},\"wall_s\":{wall:.4},\"process_s\":{process_s:.4},\
          \"ms_per_substep\":{per_substep_ms:.4},\"Mpart_substeps_per_s\":{:.3},\
          \"particles_out\":{}}}",
         case.name,
         case.n,
         case.g,
+        precision(),
         case.n as f64 / per_substep_ms / 1e3,
         summary["particles_out"],
     );

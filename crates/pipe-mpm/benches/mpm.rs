@@ -17,7 +17,10 @@
 //!   ([`Simulator::backward_into`]).
 //! * `MPM_ROLLOUT=run|tape|tape+bwd`: one differentiable rollout of `MPM_FRAMES` (14) frames of
 //!   `MPM_SUBSTEPS_PER_FRAME` (50) substeps, N = 20k, G = 32, nh, checkpoint per frame; for
-//!   peak-memory measurements with `/usr/bin/time -v` (`run` = plain forward, no tape);
+//!   peak-memory measurements (`run` = plain forward, no tape). Frames count as `pipe simulate
+//!   --frames` counts them: 14 frames are the states 0..13, 13 frame intervals, and the tape
+//!   keeps those 14 frame-boundary states (13 checkpoints and the last). Prints the peak RSS
+//!   before and after, and both over `14 × state` (state = x, v, C, F in the run's precision);
 //!   `MPM_SNAPSHOTS` sets [`BackwardOptions::snapshots`] (default
 //!   [`pipe_mpm::adjoint::SEGMENT_SNAPSHOTS`]); the loss (mean y at every frame) is seeded in
 //!   place ([`Simulator::backward_into`]).
@@ -149,21 +152,27 @@ fn rss_kib() -> usize {
 }
 
 fn rollout(mode: &str) {
-    let frames = env_usize("MPM_FRAMES", 14);
+    let frames = env_usize("MPM_FRAMES", 14).max(2);
     let spf = env_usize("MPM_SUBSTEPS_PER_FRAME", 50);
+    let substeps = (frames - 1) * spf;
     let n = 20_000;
     let (sim, mut s, mat) = scene(NeoHookean, n, 32);
-    let state_bytes = n * (3 + 3 + 9 + 9) * 8;
+    let bytes = if std::env::var("MPM_PRECISION").as_deref() == Ok("f32") {
+        4
+    } else {
+        8
+    };
+    let state_bytes = n * (3 + 3 + 9 + 9) * bytes;
     let hwm0 = rss_kib();
     let t = std::time::Instant::now();
+    let mut kept = 0;
     match mode {
         "run" => {
-            sim.run(&mut s, &mat, 0.0, frames * spf).unwrap();
+            sim.run(&mut s, &mat, 0.0, substeps).unwrap();
         }
         "tape" | "tape+bwd" => {
-            let tape = sim
-                .forward_tape(&mut s, &mat, 0.0, frames * spf, spf)
-                .unwrap();
+            let tape = sim.forward_tape(&mut s, &mat, 0.0, substeps, spf).unwrap();
+            kept = tape.checkpoint_count() + 1;
             if mode == "tape+bwd" {
                 // Loss: mean y at every frame, added in place (no gradient state per seed).
                 let d_mean_y = DVec3::new(0.0, 1.0 / n as f64, 0.0);
@@ -187,9 +196,12 @@ fn rollout(mode: &str) {
         }
         m => panic!("MPM_ROLLOUT={m}: expected run, tape or tape+bwd"),
     }
+    let hwm1 = rss_kib();
+    let budget = (frames * state_bytes) as f64;
     println!(
-        "{{\"mode\":\"{mode}\",\"N\":{n},\"frames\":{frames},\"substeps_per_frame\":{spf},\"state_bytes\":{state_bytes},\"vmhwm_before_kib\":{hwm0},\"vmhwm_after_kib\":{},\"wall_s\":{:.4}}}",
-        rss_kib(),
+        "{{\"mode\":\"{mode}\",\"N\":{n},\"frames\":{frames},\"substeps\":{substeps},\"states_kept\":{kept},\"state_bytes\":{state_bytes},\"vmhwm_before_kib\":{hwm0},\"vmhwm_after_kib\":{hwm1},\"peak_over_frames_x_state\":{:.3},\"rollout_over_frames_x_state\":{:.3},\"wall_s\":{:.4}}}",
+        hwm1 as f64 * 1024.0 / budget,
+        (hwm1 - hwm0) as f64 * 1024.0 / budget,
         t.elapsed().as_secs_f64()
     );
 }

@@ -8,7 +8,6 @@
 use std::ops::Range;
 
 use glam::{DVec3, IVec3};
-use rayon::prelude::*;
 
 use crate::error::MpmError;
 
@@ -219,22 +218,30 @@ impl GridSpec {
     }
 }
 
-/// The nodes a set of particles touches, as x-layers `x` and y-rows `y` (all of z): in the
-/// x-major layout each layer's part is one contiguous index range.
+/// The nodes a set of particles touches: x-layers `x`, y-rows `y` and z-columns `z` (local
+/// indices; in the x-major layout each `(x, y)` row's part is one contiguous index range).
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct NodeBox {
     /// Local x indices.
     pub x: Range<usize>,
     /// Local y indices.
     pub y: Range<usize>,
+    /// Local z indices.
+    pub z: Range<usize>,
 }
 
 impl NodeBox {
-    /// The box's linear index range in each of its x-layers.
+    /// The box's linear index range in each of its `(x, y)` rows.
     pub fn rows(&self, grid: &GridSpec) -> impl Iterator<Item = Range<usize>> + use<> {
         let (layer, dz) = (grid.layer(), grid.dims[2]);
-        let (y0, y1) = (self.y.start * dz, self.y.end * dz);
-        self.x.clone().map(move |x| x * layer + y0..x * layer + y1)
+        let (ys, z) = (self.y.clone(), self.z.clone());
+        self.x.clone().flat_map(move |x| {
+            let z = z.clone();
+            ys.clone().map(move |y| {
+                let at = x * layer + y * dz;
+                at + z.start..at + z.end
+            })
+        })
     }
 
     /// Sets the box's entries of a grid array to `v`.
@@ -242,26 +249,6 @@ impl NodeBox {
         for r in self.rows(grid) {
             data[r].fill(v.clone());
         }
-    }
-
-    /// Calls `f(index, entry)` for the box's entries of a grid array, in parallel over layers.
-    pub fn par_for_each<T: Send>(
-        &self,
-        grid: &GridSpec,
-        data: &mut [T],
-        f: impl Fn(usize, &mut T) + Sync,
-    ) {
-        let (layer, dz) = (grid.layer(), grid.dims[2]);
-        let (y0, y1) = (self.y.start * dz, self.y.end * dz);
-        data.par_chunks_mut(layer)
-            .enumerate()
-            .skip(self.x.start)
-            .take(self.x.len())
-            .for_each(|(x, l)| {
-                for (k, e) in l[y0..y1].iter_mut().enumerate() {
-                    f(x * layer + y0 + k, e);
-                }
-            });
     }
 }
 

@@ -105,6 +105,26 @@ pub struct Simulator<M: Constitutive> {
     /// the next).
     pub(crate) wide_cache: BufferCache,
     pub(crate) adjoint_cache: BufferCache,
+    /// The checkpoint buffers of the last dropped tape (reused by the next `forward_tape`).
+    pub(crate) tape_pool: TapePool,
+}
+
+/// Where a dropped [`crate::adjoint::Tape`] returns its checkpoint buffers: the tape holds it
+/// weakly, so a tape that outlives its simulator frees them. A clone of the simulator starts
+/// with an empty pool.
+#[derive(Default)]
+pub(crate) struct TapePool(pub(crate) std::sync::Arc<BufferCache>);
+
+impl Clone for TapePool {
+    fn clone(&self) -> Self {
+        Self::default()
+    }
+}
+
+impl std::fmt::Debug for TapePool {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("TapePool")
+    }
 }
 
 /// Buffers kept from one run to the next (any type; a run takes them or starts empty). A
@@ -164,6 +184,7 @@ impl<M: Constitutive> Simulator<M> {
             grid,
             wide_cache: BufferCache::default(),
             adjoint_cache: BufferCache::default(),
+            tape_pool: TapePool::default(),
         })
     }
 

@@ -67,3 +67,52 @@ fn one_two_and_three_threads_are_bit_identical() {
         assert_eq!(a.2, b.2, "material gradients differ ({threads} threads)");
     }
 }
+
+/// A dropped tape's checkpoint buffers go back to its simulator and the next tape reuses them:
+/// a second differentiable pass (f32 and f64, one simulator) must give the same bits as the
+/// first, whose tape was built in fresh memory, also when the second tape is shorter or longer.
+#[test]
+fn reused_tape_buffers_give_the_same_bits() {
+    for precision in [pipe_mpm::Precision::F64, pipe_mpm::Precision::F32] {
+        let (sim, s0, mat) = scene();
+        let mut cfg = sim.config().clone();
+        cfg.precision = precision;
+        let sim = Simulator::new(DruckerPrager { alpha: 0.3 }, cfg).unwrap();
+        let pass = |substeps: usize| {
+            let mut s = s0.clone();
+            let tape = sim.forward_tape(&mut s, &mat, 0.0, substeps, 2).unwrap();
+            let first = tape.checkpoint(1).unwrap();
+            let g = sim
+                .backward(
+                    &tape,
+                    &mat,
+                    |k, st| {
+                        (k == substeps).then(|| {
+                            let mut seed = StateGrad::zeros(st.get().len());
+                            seed.x.clone_from(&st.get().x);
+                            seed
+                        })
+                    },
+                    BackwardOptions::default(),
+                )
+                .unwrap();
+            (s, first, g.state, g.material.mu)
+        };
+        let fresh = pass(6);
+        assert_eq!(fresh, pass(6), "{precision:?}: a reused tape differs");
+        let (short, long) = (pass(4), pass(8));
+        assert_eq!(
+            short.1, fresh.1,
+            "{precision:?}: checkpoint 1 of a shorter tape"
+        );
+        assert_eq!(
+            long.1, fresh.1,
+            "{precision:?}: checkpoint 1 of a longer tape"
+        );
+        assert_eq!(
+            fresh,
+            pass(6),
+            "{precision:?}: after shorter and longer tapes"
+        );
+    }
+}

@@ -10,13 +10,14 @@
 //! [`crate::Precision`].
 
 use std::borrow::Cow;
+use std::sync::{Arc, Weak};
 
 use glam::{DMat3, DVec3};
 
 use super::schedule::SEGMENT_SNAPSHOTS;
 use crate::error::MpmError;
 use crate::models::Constitutive;
-use crate::sim::{Precision, RunReport, Simulator};
+use crate::sim::{BufferCache, Precision, RunReport, Simulator};
 use crate::state::{Material, MaterialGrad, State, StateGrad};
 use crate::wide::tape::{WideTape, backward, forward_tape};
 
@@ -41,6 +42,22 @@ pub struct Tape {
     pub(crate) data: TapeData,
     /// Forward statistics.
     pub report: RunReport,
+    /// The simulator's pool, which takes the checkpoint buffers back when the tape is dropped.
+    pub(crate) pool: Weak<BufferCache>,
+}
+
+impl Drop for Tape {
+    /// Returns the checkpoint buffers to the simulator that made the tape (if it still
+    /// exists), so its next tape reuses them instead of faulting in fresh memory.
+    fn drop(&mut self) {
+        let Some(pool) = self.pool.upgrade() else {
+            return;
+        };
+        match &mut self.data {
+            TapeData::F64(t) => pool.put(t.take_buffers()),
+            TapeData::F32(t) => pool.put(t.take_buffers()),
+        }
+    }
 }
 
 impl Tape {
@@ -209,7 +226,11 @@ pub struct Gradients {
 
 impl<M: Constitutive> Simulator<M> {
     /// Runs `n_substeps` from `state` (advanced in place) keeping a checkpoint every `every`,
-    /// in the simulator's precision.
+    /// in the simulator's precision. The particles are re-sorted by cell only at checkpoints
+    /// (when their groups have broken up), so a segment's recomputation runs in the forward's
+    /// order. A dropped tape returns its checkpoint buffers to this simulator, and the next
+    /// tape of the same particle count reuses them (an optimisation loop's tapes fault in no
+    /// fresh memory); they are freed with the simulator.
     pub fn forward_tape(
         &self,
         state: &mut State,
@@ -253,6 +274,7 @@ impl<M: Constitutive> Simulator<M> {
                 every,
                 data,
                 report,
+                pool: Arc::downgrade(&self.tape_pool.0),
             })
         })
     }

@@ -77,7 +77,7 @@ impl<M: Constitutive> Simulator<M> {
         let mut adj = AdjBuffers::default();
         adjoint_step(&e, &start, e.work(), &mut g, &mut acc, &mut adj);
         acc.add_into(&e.ids, gmat);
-        Ok(to_state_grad(&g, &e.ids))
+        Ok(to_state_grad(&g, &e.ids, None).0)
     }
 }
 

@@ -228,13 +228,14 @@ pub(crate) fn grid_update_adjoint<T: Real>(
         .take(active.x.len())
         .for_each(|(x, ((out, nodes), gv))| {
             for y in active.y.clone() {
-                let row = y * dz..(y + 1) * dz;
-                for (z, ((o, n), gv)) in out[row.clone()]
-                    .iter_mut()
-                    .zip(&nodes[row.clone()])
-                    .zip(&gv[row])
-                    .enumerate()
-                {
+                let row = y * dz + active.z.start..y * dz + active.z.end;
+                let zs = active.z.clone();
+                for (z, ((o, n), gv)) in zs.zip(
+                    out[row.clone()]
+                        .iter_mut()
+                        .zip(&nodes[row.clone()])
+                        .zip(&gv[row]),
+                ) {
                     let m = n[3].f64();
                     let gvel = glam::DVec3::new(gv[0].f64(), gv[1].f64(), gv[2].f64());
                     *o = if m > thr && gvel != glam::DVec3::ZERO {
@@ -444,8 +445,17 @@ fn lane_of<W: Wide>(w: W, v: &[W::T], i: usize, uniform: bool) -> W::V {
 /// Adds the first `n` lanes of `v` to `acc` (in `f64`).
 #[inline(always)]
 fn accumulate<W: Wide>(w: W, v: W::V, acc: &mut [f64], n: usize) {
-    for (a, x) in acc.iter_mut().zip(&w.lanes(v)[..n]) {
-        *a += x.f64();
+    let lanes = w.lanes(v);
+    if n == W::T::N && acc.len() >= W::T::N {
+        // A whole vector: a fixed-length loop the compiler turns into vector conversions.
+        let acc = &mut acc[..W::T::N];
+        for l in 0..W::T::N {
+            acc[l] += lanes[l].f64();
+        }
+    } else {
+        for (a, x) in acc.iter_mut().zip(&lanes[..n]) {
+            *a += x.f64();
+        }
     }
 }
 

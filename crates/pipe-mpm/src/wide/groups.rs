@@ -192,6 +192,7 @@ impl Groups {
         self.touched = NodeBox {
             x: lo[0]..hi[0] + 3,
             y: lo[1]..hi[1] + 3,
+            z: lo[2]..hi[2] + 3,
         };
         // Slabs: equal-count cuts of the particles' x cells, groups bucketed stably.
         self.per_cell.clear();

@@ -132,8 +132,9 @@ pub(crate) fn grid_update<T: Real>(
         .map(|(x, (out, nodes))| {
             let mut v_max = 0.0f64;
             for y in active.y.clone() {
-                let row = y * dz..(y + 1) * dz;
-                for (z, (o, n)) in out[row.clone()].iter_mut().zip(&nodes[row]).enumerate() {
+                let row = y * dz + active.z.start..y * dz + active.z.end;
+                let zs = active.z.clone();
+                for (z, (o, n)) in zs.zip(out[row.clone()].iter_mut().zip(&nodes[row])) {
                     let m = n[3].f64();
                     *o = if m > thr {
                         let mv = glam::DVec3::new(n[0].f64(), n[1].f64(), n[2].f64());

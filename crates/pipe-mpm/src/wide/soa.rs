@@ -58,6 +58,16 @@ impl<T: Real> Soa<T> {
         }
     }
 
+    /// No particles and no storage (a placeholder for a buffer taken away).
+    pub fn empty() -> Self {
+        Self {
+            n: 0,
+            stride: 0,
+            x: Vec::new(),
+            vcf: Vec::new(),
+        }
+    }
+
     /// `n` particles, every entry 0 (a gradient state).
     pub fn zeros(n: usize) -> Self {
         let stride = padded(n);

@@ -1,12 +1,17 @@
 //! Checkpointed forward and backward passes on the vectorised engine.
 //!
-//! The forward pass keeps the state every `every` substeps (a checkpoint). A taped run keeps
-//! the slot order of its start (no re-sorting), so the sums run in one order whatever the
-//! checkpoint interval and the gradients do not depend on it, bit for bit. The backward pass reverses one segment at a time from its checkpoint, recomputing
-//! states with at most `snapshots` of them alive (the binomial schedule of
+//! The forward pass keeps the state every `every` substeps (a checkpoint). A taped run
+//! re-sorts its particles only at checkpoints (when their groups have broken up, as a plain
+//! run does at any substep), and each checkpoint keeps its slot order, so a segment's
+//! recomputation runs in the forward's order. Until a run first re-sorts, the sums run in one
+//! order whatever the checkpoint interval, and the gradients do not depend on it, bit for bit.
+//! The backward pass reverses one segment at a time from its checkpoint, recomputing states
+//! with at most `snapshots` of them alive (the binomial schedule of
 //! `crate::adjoint::schedule`) and keeping the intermediates of recomputed substeps when a
 //! segment fits in the snapshots; each reversed substep is the adjoint chain of
 //! [`super::adjoint`].
+
+use std::sync::Arc;
 
 use glam::{DMat3, DVec3};
 use rayon::prelude::*;
@@ -29,11 +34,12 @@ use crate::models::Constitutive;
 use crate::sim::{RunReport, Simulator};
 use crate::state::{FamilyGrad, Material, MaterialGrad, State, StateGrad};
 
-/// A state and its slot order (slot `i` holds the caller's particle `ids[i]`).
+/// A state and its slot order (slot `i` holds the caller's particle `ids[i]`; shared by the
+/// checkpoints between two re-sorts of a taped run).
 #[derive(Debug, Clone)]
 pub(crate) struct Checkpoint<T> {
     pub p: Soa<T>,
-    pub ids: Vec<u32>,
+    pub ids: Arc<[u32]>,
 }
 
 impl<T: Real> Checkpoint<T> {
@@ -67,8 +73,30 @@ pub(crate) struct WideTape<T> {
     pub origin: DVec3,
 }
 
+impl<T: Real> WideTape<T> {
+    /// The checkpoints' state buffers, leaving the tape empty.
+    pub fn take_buffers(&mut self) -> Vec<Soa<T>> {
+        let mut out: Vec<Soa<T>> = self.checkpoints.drain(..).map(|c| c.p).collect();
+        out.push(std::mem::replace(&mut self.last.p, Soa::empty()));
+        out
+    }
+}
+
+/// A copy of `src` in a buffer of `pool` (a dropped tape's), else in a new one.
+fn kept_copy<T: Real>(pool: &mut Vec<Soa<T>>, src: &Soa<T>) -> Soa<T> {
+    match pool.pop() {
+        Some(mut b) => {
+            b.x.copy_from_slice(&src.x);
+            b.vcf.copy_from_slice(&src.vcf);
+            b
+        }
+        None => src.clone(),
+    }
+}
+
 /// Runs `n_substeps` from `state` (validated and held; advanced in place), keeping a
-/// checkpoint every `every`; the report `rep` continues.
+/// checkpoint every `every` (in the buffers of the simulator's last dropped tape when there
+/// are any); the report `rep` continues.
 pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
     sim: &Simulator<M>,
     state: &mut State,
@@ -80,22 +108,31 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
 ) -> Result<WideTape<T>, MpmError> {
     let cached = sim.wide_cache.take::<Buffers<T>>().unwrap_or_default();
     let mut e = Engine::<T, M>::new(sim, state, mat, cached);
+    let mut pool: Vec<Soa<T>> = sim.tape_pool.0.take::<Vec<Soa<T>>>().unwrap_or_default();
+    pool.retain(|b| b.n == e.p.n && b.stride == e.p.stride);
     let mut checkpoints = Vec::with_capacity(n_substeps.div_ceil(every));
+    // The slot order, shared by the checkpoints between re-sorts.
+    let mut ids: Arc<[u32]> = e.ids.as_slice().into();
     for k in 0..n_substeps {
-        e.regroup(false);
-        if k.is_multiple_of(every) {
+        let at_checkpoint = k.is_multiple_of(every);
+        e.regroup(at_checkpoint);
+        if at_checkpoint {
+            if *ids != *e.ids {
+                ids = e.ids.as_slice().into();
+            }
             checkpoints.push(Checkpoint {
-                p: e.p.clone(),
-                ids: e.ids.clone(),
+                p: kept_copy(&mut pool, &e.p),
+                ids: Arc::clone(&ids),
             });
         }
         let outcome = e.step(t0 + k as f64 * sim.config.dt);
         e.record(k, outcome, state, rep)?;
     }
     let last = Checkpoint {
-        p: e.p.clone(),
-        ids: e.ids.clone(),
+        p: kept_copy(&mut pool, &e.p),
+        ids,
     };
+    drop(pool);
     let origin = e.origin;
     e.write_back(state);
     sim.wide_cache.put(e.into_buffers());
@@ -114,6 +151,9 @@ pub(crate) struct BackCache<T> {
     adj: AdjBuffers<T>,
     soas: Vec<Soa<T>>,
     works: Vec<Work<T>>,
+    /// The running state gradient and the material accumulators.
+    grad: Option<Soa<T>>,
+    acc: Option<MatAcc>,
 }
 
 impl<T> Default for BackCache<T> {
@@ -123,6 +163,8 @@ impl<T> Default for BackCache<T> {
             adj: AdjBuffers::default(),
             soas: Vec::new(),
             works: Vec::new(),
+            grad: None,
+            acc: None,
         }
     }
 }
@@ -167,6 +209,20 @@ pub(crate) struct MatAcc {
 }
 
 impl MatAcc {
+    /// `old` zeroed when it has this shape, else new zeros.
+    pub fn zeroed(old: Option<Self>, stride: usize, family: bool) -> Self {
+        match old {
+            Some(mut a) if a.mass.len() == stride && a.family.is_empty() != family => {
+                for v in [&mut a.mass, &mut a.volume, &mut a.mu, &mut a.lam] {
+                    v.fill(0.0);
+                }
+                a.family.fill(FamilyGrad::default());
+                a
+            }
+            _ => Self::zeros(stride, family),
+        }
+    }
+
     pub fn zeros(stride: usize, family: bool) -> Self {
         Self {
             mass: vec![0.0; stride],
@@ -421,7 +477,7 @@ impl<T: Real> crate::adjoint::SeedSource for SlotState<'_, T> {
     fn state(&self) -> State {
         Checkpoint {
             p: self.p.clone(),
-            ids: self.ids.to_vec(),
+            ids: self.ids.into(),
         }
         .state(self.origin)
     }
@@ -473,49 +529,79 @@ impl<T: Real> crate::adjoint::GradSink for SlotGrad<'_, T> {
     }
 }
 
-/// A gradient state in slot order (`ids`) as the caller's [`StateGrad`].
-pub(crate) fn to_state_grad<T: Real>(g: &Soa<T>, ids: &[u32]) -> StateGrad {
+/// A gradient state in slot order (`ids`) as the caller's [`StateGrad`]: reordered field by
+/// field into `scratch` (a state buffer of the same size, else new), then converted in order.
+pub(crate) fn to_state_grad<T: Real>(
+    g: &Soa<T>,
+    ids: &[u32],
+    scratch: Option<Soa<T>>,
+) -> (StateGrad, Soa<T>) {
     let n = ids.len();
-    let st = g.stride;
-    let mut out = StateGrad::zeros(n);
-    let (x, vcf) = (&g.x, &g.vcf);
-    let at = |f: &[T], field: usize, i: usize| f[field * st + i].f64();
-    let mat = |base: usize, i: usize| {
-        DMat3::from_cols_array(&[
-            at(vcf, base, i),
-            at(vcf, base + 3, i),
-            at(vcf, base + 6, i),
-            at(vcf, base + 1, i),
-            at(vcf, base + 4, i),
-            at(vcf, base + 7, i),
-            at(vcf, base + 2, i),
-            at(vcf, base + 5, i),
-            at(vcf, base + 8, i),
-        ])
-    };
+    let mut rank = vec![0u32; n];
     for (i, &p) in ids.iter().enumerate() {
-        let p = p as usize;
-        out.x[p] = DVec3::new(at(x, 0, i), at(x, 1, i), at(x, 2, i));
-        out.v[p] = DVec3::new(at(vcf, V, i), at(vcf, V + 1, i), at(vcf, V + 2, i));
-        out.c[p] = mat(C, i);
-        out.f[p] = mat(F, i);
+        rank[p as usize] = i as u32;
     }
-    out
+    let mut c = scratch
+        .filter(|s| s.n == n)
+        .unwrap_or_else(|| Soa::zeros(n));
+    g.permute_into(&rank, &mut c);
+    let st = c.stride;
+    let at = |f: &[T], field: usize, i: usize| f[field * st + i].f64();
+    let (x, vcf) = (&c.x, &c.vcf);
+    let vec3 = |f: &[T], base: usize| -> Vec<DVec3> {
+        (0..n)
+            .into_par_iter()
+            .map(|i| DVec3::new(at(f, base, i), at(f, base + 1, i), at(f, base + 2, i)))
+            .collect()
+    };
+    // Row-major fields into column-major matrices.
+    let mat3 = |base: usize| -> Vec<DMat3> {
+        (0..n)
+            .into_par_iter()
+            .map(|i| {
+                DMat3::from_cols_array(&std::array::from_fn(|k| {
+                    at(vcf, base + 3 * (k % 3) + k / 3, i)
+                }))
+            })
+            .collect()
+    };
+    let out = StateGrad {
+        x: vec3(x, 0),
+        v: vec3(vcf, V),
+        c: mat3(C),
+        f: mat3(F),
+    };
+    (out, c)
 }
 
 /// The first NaN/Inf of a gradient state (slot order `ids`), as (quantity, caller's index).
 fn first_non_finite<T: Real>(g: &Soa<T>, ids: &[u32]) -> Option<(&'static str, usize)> {
-    to_state_grad(g, ids).first_non_finite()
+    to_state_grad(g, ids, None).0.first_non_finite()
 }
 
-/// `g` (slot order `from_ids`) reordered to slot order `to_ids`.
-fn reorder<T: Real>(g: &Soa<T>, from_ids: &[u32], to_ids: &[u32]) -> Soa<T> {
+/// `g` (slot order `from_ids`) reordered to slot order `to_ids`, written into `scratch` (a
+/// state buffer of the same size, else new; padding set to 0).
+fn reorder<T: Real>(
+    g: &Soa<T>,
+    from_ids: &[u32],
+    to_ids: &[u32],
+    scratch: Option<Soa<T>>,
+) -> Soa<T> {
     let mut rank = vec![0u32; from_ids.len()];
     for (i, &p) in from_ids.iter().enumerate() {
         rank[p as usize] = i as u32;
     }
     let from: Vec<u32> = to_ids.iter().map(|&p| rank[p as usize]).collect();
-    let mut out = Soa::zeros(g.n);
+    let mut out = match scratch.filter(|s| s.n == g.n) {
+        Some(mut s) => {
+            let (n, st) = (s.n, s.stride);
+            for f in s.x.chunks_exact_mut(st).chain(s.vcf.chunks_exact_mut(st)) {
+                f[n..].fill(T::of(0.0));
+            }
+            s
+        }
+        None => Soa::zeros(g.n),
+    };
     g.permute_into(&from, &mut out);
     out
 }
@@ -558,13 +644,20 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
     let mut e = Engine::<T, M>::with_state(
         sim,
         p,
-        tape.last.ids.clone(),
+        tape.last.ids.to_vec(),
         mat,
         std::mem::take(&mut cache.engine),
     );
     e.keep = true;
-    let mut g = Soa::<T>::zeros(np);
-    let mut order_g = tape.last.ids.clone();
+    let mut g = match cache.grad.take().filter(|g| g.n == np) {
+        Some(mut g) => {
+            g.x.fill(T::of(0.0));
+            g.vcf.fill(T::of(0.0));
+            g
+        }
+        None => Soa::<T>::zeros(np),
+    };
+    let mut order_g = tape.last.ids.to_vec();
     {
         let rank = tape.last.rank();
         let view = SlotState {
@@ -582,11 +675,11 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
         )?;
     }
     let mut gmat = MaterialGrad::zeros(np);
-    // One slot-order accumulator for the whole pass (a taped run keeps one order), so each
-    // particle's material gradient sums its substeps in one sequence whatever the checkpoint
-    // interval.
-    let mut acc = MatAcc::zeros(tape.last.p.stride, M::HAS_FAMILY_PARAMS);
-    let mut acc_ids = tape.last.ids.clone();
+    // One slot-order accumulator per slot order (a taped run changes it only where it
+    // re-sorts), so until then each particle's material gradient sums its substeps in one
+    // sequence whatever the checkpoint interval.
+    let mut acc = MatAcc::zeroed(cache.acc.take(), tape.last.p.stride, M::HAS_FAMILY_PARAMS);
+    let mut acc_ids = tape.last.ids.to_vec();
     let plan = Schedule::new(every.min(n_substeps.max(1)), snapshots);
     let mut adj = std::mem::take(&mut cache.adj);
     let mut rev = Reverser {
@@ -609,16 +702,17 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
         if hi <= start {
             break;
         }
-        if ck.ids != order_g {
-            g = reorder(&g, &order_g, &ck.ids);
-            order_g.clone_from(&ck.ids);
+        if *ck.ids != *order_g {
+            let next = reorder(&g, &order_g, &ck.ids, rev.spare.pop());
+            rev.spare.push(std::mem::replace(&mut g, next));
+            order_g = ck.ids.to_vec();
         }
         e.load(ck.p.n, &ck.ids);
         let rank = ck.rank();
-        if acc_ids != ck.ids {
+        if *acc_ids != *ck.ids {
             acc.add_into(&acc_ids, &mut gmat);
-            acc = MatAcc::zeros(ck.p.stride, M::HAS_FAMILY_PARAMS);
-            acc_ids.clone_from(&ck.ids);
+            acc = MatAcc::zeroed(Some(acc), ck.p.stride, M::HAS_FAMILY_PARAMS);
+            acc_ids = ck.ids.to_vec();
         }
         let mut ctx = Ctx {
             e: &mut e,
@@ -633,16 +727,20 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
         rev.segment(&mut ctx, lo, hi)?;
     }
     acc.add_into(&acc_ids, &mut gmat);
+    if M::HAS_FAMILY_PARAMS && gmat.family_per_particle.is_empty() {
+        gmat.family_per_particle = vec![FamilyGrad::default(); np];
+    }
+    let (out, scratch) = to_state_grad(&g, &order_g, rev.spare.pop());
+    rev.spare.push(scratch);
     sim.adjoint_cache.put(BackCache {
         engine: e.into_buffers(),
         adj,
         soas: rev.spare,
         works: rev.spare_work,
+        grad: Some(g),
+        acc: Some(acc),
     });
-    if M::HAS_FAMILY_PARAMS && gmat.family_per_particle.is_empty() {
-        gmat.family_per_particle = vec![FamilyGrad::default(); np];
-    }
-    Ok((to_state_grad(&g, &order_g), gmat))
+    Ok((out, gmat))
 }
 
 /// What a reversed substep works on.
