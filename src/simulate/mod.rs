@@ -580,8 +580,9 @@ impl Job<'_> {
             ),
             source,
         };
-        let mut sim = Simulator::new(model, cfg).map_err(setup_err)?;
-        sim.validate(&state, &self.mat).map_err(setup_err)?;
+        let sim = Simulator::new(model, cfg).map_err(setup_err)?;
+        // Validated and held in the domain once, then kept in the engine from frame to frame.
+        let mut stepper = sim.stepper(&mut state, &self.mat).map_err(setup_err)?;
         // Refuse an unstable fixed substep count before writing anything.
         if self.frames > 1 {
             self.substeps(&sim, &state, 1)?;
@@ -597,12 +598,12 @@ impl Job<'_> {
         }
         // Only the input particles are written; the fillers follow them unseen.
         let n_out = self.n_input;
-        output::write_frame(self.out, 0, &state.x[..n_out])?;
+        let mut traj = Trajectories::with_capacity(self.frames as usize, n_out);
+        let pos = traj.push_frame(0, &state.x[..n_out], &state.v[..n_out]);
+        output::write_frame(self.out, 0, pos)?;
         if let Some(g) = self.gaussians {
             output::write_splats(self.out, 0, g)?;
         }
-        let mut traj = Trajectories::default();
-        traj.push_frame(0, &state.x[..n_out], &state.v[..n_out]);
         let mut stats = Vec::new();
         let mut warnings = Vec::new();
         self.progress
@@ -628,32 +629,35 @@ impl Job<'_> {
                 self.progress.log(&format!("warning: {w}"));
                 warnings.push(w);
             }
-            sim.set_dt(dt).map_err(|source| SimulateError::Simulation {
-                context: format!("frame {frame}"),
+            let t0 = f64::from(frame - 1) * spec.frame_dt;
+            let rep = stepper.advance(t0, dt, n_sub).map_err(|source| {
+                let why = if unstable {
+                    " (the substep is above the stability limit: allow_unstable)"
+                } else {
+                    ""
+                };
+                SimulateError::Simulation {
+                    context: format!(
+                        "frame {frame} ({n_sub} substeps of {dt:.3e} s from t = {t0:.4} s){why}"
+                    ),
+                    source,
+                }
+            })?;
+            // The next frame's substeps need the velocities; the splats need `F` too.
+            let read = match self.gaussians {
+                Some(_) => stepper.read(&mut state),
+                None => stepper.read_motion(&mut state),
+            };
+            read.map_err(|source| SimulateError::Simulation {
+                context: format!("frame {frame}: reading the state"),
                 source,
             })?;
-            let t0 = f64::from(frame - 1) * spec.frame_dt;
-            let rep = sim
-                .run(&mut state, &self.mat, t0, n_sub)
-                .map_err(|source| {
-                    let why = if unstable {
-                        " (the substep is above the stability limit: allow_unstable)"
-                    } else {
-                        ""
-                    };
-                    SimulateError::Simulation {
-                        context: format!(
-                            "frame {frame} ({n_sub} substeps of {dt:.3e} s from t = {t0:.4} s){why}"
-                        ),
-                        source,
-                    }
-                })?;
-            output::write_frame(self.out, frame, &state.x[..n_out])?;
+            let pos = traj.push_frame(frame as u16, &state.x[..n_out], &state.v[..n_out]);
+            output::write_frame(self.out, frame, pos)?;
             if let Some(g) = self.gaussians {
                 let f = splat_deformation(spec.material.family, &state.f[..n_out]);
                 output::write_splats(self.out, frame, &deform(g, &state.x[..n_out], &f))?;
             }
-            traj.push_frame(frame as u16, &state.x[..n_out], &state.v[..n_out]);
             self.progress.message(&format!(
                 "frame {frame}: {n_sub} substeps ({reason}), held {}",
                 rep.held

@@ -1,7 +1,8 @@
 //! What `pipe simulate` writes into its output folder, every file atomically:
 //!
 //! - `frame_0000.ply` … `frame_{frames-1}.ply`: positions (m) as binary little-endian
-//!   `float x y z`; frame 0 is the input state;
+//!   `float x y z`; frame 0 is the input state (particles outside a given `domain` moved to
+//!   its edge, as the run warns);
 //! - `splats_0000.ply` … (with `--splats`, for a 3DGS input): the input's splats moved and
 //!   deformed with their particles ([`crate::scene::deform`]), in the input's 3DGS layout;
 //! - `particles.arrow`: the [`Trajectories`] table, one row per particle per frame;
@@ -45,12 +46,26 @@ pub struct Trajectories {
 }
 
 impl Trajectories {
-    /// Appends one frame of positions and velocities (one row per particle, in order).
-    pub fn push_frame(&mut self, frame: u16, x: &[DVec3], v: &[DVec3]) {
+    /// Room for `frames` frames of `n` particles.
+    pub fn with_capacity(frames: usize, n: usize) -> Self {
+        let rows = frames * n;
+        Self {
+            frame: Vec::with_capacity(rows),
+            id: Vec::with_capacity(rows),
+            x: Vec::with_capacity(rows),
+            v: Vec::with_capacity(rows),
+        }
+    }
+
+    /// Appends one frame of positions and velocities (one row per particle, in order); returns
+    /// the frame's positions as stored.
+    pub fn push_frame(&mut self, frame: u16, x: &[DVec3], v: &[DVec3]) -> &[[f32; 3]] {
+        let first = self.x.len();
         self.frame.extend(std::iter::repeat_n(frame, x.len()));
         self.id.extend((0..x.len()).map(|i| i as u32));
         self.x.extend(x.iter().map(|p| p.as_vec3().to_array()));
         self.v.extend(v.iter().map(|p| p.as_vec3().to_array()));
+        &self.x[first..]
     }
 
     /// Number of rows.
@@ -322,9 +337,8 @@ pub fn write_splats(dir: &Path, frame: u32, g: &Gaussians) -> Result<(), Simulat
 }
 
 /// Writes one frame's positions.
-pub fn write_frame(dir: &Path, frame: u32, x: &[DVec3]) -> Result<(), SimulateError> {
-    let pos: Vec<[f32; 3]> = x.iter().map(|p| p.as_vec3().to_array()).collect();
-    ply::write_points(&frame_path(dir, frame), &pos, None)?;
+pub fn write_frame(dir: &Path, frame: u32, pos: &[[f32; 3]]) -> Result<(), SimulateError> {
+    ply::write_points(&frame_path(dir, frame), pos, None)?;
     Ok(())
 }
 

@@ -47,7 +47,7 @@
 //! mode and checkpointing schedule), `wide` (the vectorised engine: lanes, groups, forward and
 //! adjoint kernels, tape), `scatter` (deterministic slab colouring), [`family`] (runtime
 //! family choice, monomorphised inside), `order` (permutations of the particles), `isa`
-//! (run-time AVX2 + FMA choice).
+//! (run-time AVX2 + FMA choice), `stepper` (a state kept in the engine between runs).
 
 pub mod adjoint;
 pub mod boundary;
@@ -63,6 +63,7 @@ mod order;
 mod scatter;
 mod sim;
 mod state;
+mod stepper;
 pub mod svd;
 pub mod timestep;
 mod wide;
@@ -81,4 +82,5 @@ pub use sim::{Precision, RunReport, SimConfig, Simulator};
 pub use state::{
     FamilyGrad, FamilyParams, Material, MaterialGrad, State, StateGrad, lame, lame_grad_to_e_nu,
 };
+pub use stepper::Stepper;
 pub use timestep::{StableStep, StepLimits, stable_step, stable_step_at_speed, substeps_per_frame};

@@ -295,17 +295,9 @@ impl<M: Constitutive> Simulator<M> {
         t0: f64,
         n_substeps: usize,
     ) -> Result<RunReport, MpmError> {
-        on_worker(|| {
-            let mut rep = self.prepare(state, mat)?;
-            match self.config.precision {
-                Precision::F64 => {
-                    crate::wide::run::<f64, M>(self, state, mat, t0, n_substeps, &mut rep)
-                }
-                Precision::F32 => {
-                    crate::wide::run::<f32, M>(self, state, mat, t0, n_substeps, &mut rep)
-                }
-            }?;
-            Ok(rep)
-        })
+        let mut stepper = self.stepper(state, mat)?;
+        let rep = stepper.advance(t0, self.config.dt, n_substeps);
+        stepper.read(state)?;
+        rep
     }
 }

@@ -220,6 +220,7 @@ pub(crate) fn grid_update_adjoint<T: Real>(
     let thr = mass_threshold(grid.dx);
     out.resize(grid.len(), [T::of(0.0); 4]);
     let (layer, dz) = (grid.layer(), grid.dims[2]);
+    let clear = bc.clear_axes(grid);
     out.par_chunks_mut(layer)
         .zip(nodes.par_chunks(layer))
         .zip(g_vgrid.par_chunks(layer))
@@ -230,6 +231,7 @@ pub(crate) fn grid_update_adjoint<T: Real>(
             for y in active.y.clone() {
                 let row = y * dz + active.z.start..y * dz + active.z.end;
                 let zs = active.z.clone();
+                let clear_z = clear.as_ref().filter(|c| c[0][x] && c[1][y]).map(|c| &c[2]);
                 for (z, ((o, n), gv)) in zs.zip(
                     out[row.clone()]
                         .iter_mut()
@@ -241,7 +243,11 @@ pub(crate) fn grid_update_adjoint<T: Real>(
                     *o = if m > thr && gvel != glam::DVec3::ZERO {
                         let mv = glam::DVec3::new(n[0].f64(), n[1].f64(), n[2].f64());
                         let v = mv / m + dt * g;
-                        let gpre = bc.adjoint(grid, grid.node_pos([x, y, z]), v, gvel);
+                        let gpre = if clear_z.is_some_and(|c| c[z]) {
+                            gvel
+                        } else {
+                            bc.adjoint(grid, grid.node_pos([x, y, z]), v, gvel)
+                        };
                         let gmv = gpre / m;
                         let gm = -gpre.dot(mv) / (m * m);
                         [T::of(gmv.x), T::of(gmv.y), T::of(gmv.z), T::of(gm)]

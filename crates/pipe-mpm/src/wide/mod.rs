@@ -124,6 +124,7 @@ pub(crate) fn grid_update<T: Real>(
     let thr = mass_threshold(grid.dx);
     out.resize(grid.len(), [T::of(0.0); 4]);
     let (layer, dz) = (grid.layer(), grid.dims[2]);
+    let clear = bc.clear_axes(grid);
     out.par_chunks_mut(layer)
         .zip(nodes.par_chunks(layer))
         .enumerate()
@@ -134,11 +135,17 @@ pub(crate) fn grid_update<T: Real>(
             for y in active.y.clone() {
                 let row = y * dz + active.z.start..y * dz + active.z.end;
                 let zs = active.z.clone();
+                let clear_z = clear.as_ref().filter(|c| c[0][x] && c[1][y]).map(|c| &c[2]);
                 for (z, (o, n)) in zs.zip(out[row.clone()].iter_mut().zip(&nodes[row])) {
                     let m = n[3].f64();
                     *o = if m > thr {
                         let mv = glam::DVec3::new(n[0].f64(), n[1].f64(), n[2].f64());
-                        let v = bc.apply(grid, grid.node_pos([x, y, z]), mv / m + dt * g);
+                        let v = mv / m + dt * g;
+                        let v = if clear_z.is_some_and(|c| c[z]) {
+                            v
+                        } else {
+                            bc.apply(grid, grid.node_pos([x, y, z]), v)
+                        };
                         let vt = [T::of(v.x), T::of(v.y), T::of(v.z), T::of(0.0)];
                         v_max = v_max.max(vt.iter().fold(0.0, |a, c| a.max(c.f64().abs())));
                         vt
@@ -304,6 +311,8 @@ pub(crate) struct Engine<'s, T, M: Constitutive> {
     sorted_groups: usize,
     /// Whether the stress pass keeps τ and the model's scalar (for an adjoint).
     pub(crate) keep: bool,
+    /// Substep (s): the simulator's, or a [`crate::Stepper`]'s frame's.
+    pub(crate) dt: f64,
 }
 
 impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
@@ -366,6 +375,7 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
             slot_forces: Vec::new(),
             sorted_groups: 0,
             keep: false,
+            dt: sim.config.dt,
         };
         e.set_order(ids);
         e.b.work.groups.rebuild(grid, &e.p);
@@ -429,8 +439,14 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
 
     /// The buffers, for the next run.
     pub(crate) fn into_buffers(mut self) -> Buffers<T> {
-        self.b.p = Some(self.p);
-        self.b
+        self.take_buffers()
+    }
+
+    /// The buffers, for the next run (the engine is left empty).
+    pub(crate) fn take_buffers(&mut self) -> Buffers<T> {
+        let mut b = std::mem::take(&mut self.b);
+        b.p = Some(std::mem::replace(&mut self.p, Soa::empty()));
+        b
     }
 
     /// Re-sorts the particles by their current cells (the groups' keys).
@@ -459,11 +475,13 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
 
     /// Writes the particles back into `state` (the caller's order), positions clamped into
     /// the domain (they were held there in `T`; the shift back may round a last bit out).
-    pub(crate) fn write_back(&mut self, state: &mut State) {
-        let mut out = self.spare();
-        self.p.permute_into(&self.rank, &mut out);
-        out.to_state(self.origin, state);
-        self.b.spare = Some(out);
+    pub(crate) fn write_back(&self, state: &mut State) {
+        self.read(state, false);
+    }
+
+    /// [`Self::write_back`] of `x` and `v` alone when `motion_only`.
+    pub(crate) fn read(&self, state: &mut State, motion_only: bool) {
+        self.p.to_state(&self.rank, self.origin, state, motion_only);
         let grid = &self.sim.grid;
         state.x.par_iter_mut().for_each(|x| {
             if x.is_finite() {
@@ -500,7 +518,7 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
     fn stress(&mut self, isa: Isa, src: Option<&Soa<T>>) -> bool {
         let sim = self.sim;
         let grid = &sim.grid;
-        let (n, st) = (self.p.n, self.p.stride);
+        let (n, st, dt) = (self.p.n, self.p.stride, self.dt);
         let d_inv = 4.0 * grid.inv_dx * grid.inv_dx;
         let (head, tail) = self.p.vcf.split_at_mut(F * st);
         let (c, f0): ([&[T]; 9], Option<[&[T]; 9]>) = match src {
@@ -551,7 +569,7 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
                 };
                 isa.run_wide(StressTask {
                     model,
-                    dt: sim.config.dt,
+                    dt,
                     d_inv,
                     real,
                     uniform,
@@ -578,7 +596,7 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         let sim = self.sim;
         let grid = &sim.grid;
         let (n, st) = (self.p.n, self.p.stride);
-        let dt = sim.config.dt;
+        let dt = self.dt;
         let b = &mut self.b;
         let work = &mut b.work;
         work.extra = extra_momentum(&self.slot_forces, n, t, dt).map(|e| {
@@ -645,7 +663,7 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         let vc: [&mut [T]; 12] = fields_mut(vc, st, 0);
         let [v0, v1, v2, c0, c1, c2, c3, c4, c5, c6, c7, c8] = vc;
         let vgrid = bytemuck::cast_slice(&self.b.work.vgrid);
-        let (lo, hi, dt) = (self.lo, self.hi, self.sim.config.dt);
+        let (lo, hi, dt) = (self.lo, self.hi, self.dt);
         let out = split_fields(x, &cuts)
             .into_par_iter()
             .zip(split_fields([v0, v1, v2], &cuts))
@@ -704,18 +722,18 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         self.step(t)
     }
 
-    /// Counts substep `k`'s `(held, bad)` into `rep`; when some value went NaN/Inf, writes the
-    /// state back to `state` and names the first offending particle.
+    /// Counts substep `k`'s `(held, bad)` into `rep`; when some value went NaN/Inf, names the
+    /// first offending particle.
     pub(crate) fn record(
-        &mut self,
+        &self,
         k: usize,
         (held, bad): (usize, bool),
-        state: &mut State,
         rep: &mut RunReport,
     ) -> Result<(), MpmError> {
         if bad {
-            self.write_back(state);
-            let (quantity, particle) = state.first_non_finite().unwrap_or(("x", 0));
+            let mut s = State::at_rest(vec![DVec3::ZERO; self.p.n]);
+            self.write_back(&mut s);
+            let (quantity, particle) = s.first_non_finite().unwrap_or(("x", 0));
             return Err(MpmError::NonFinite {
                 substep: k,
                 quantity,
@@ -749,25 +767,4 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         let b = &self.b;
         ([&b.mass, &b.volume, &b.mu, &b.lam], &self.mat, self.uniform)
     }
-}
-
-/// [`Simulator::run`] on the vectorised engine in precision `T`: `state` validated and held in
-/// the domain; the report `rep` continues.
-pub(crate) fn run<T: Precise, M: Constitutive>(
-    sim: &Simulator<M>,
-    state: &mut State,
-    mat: &Material,
-    t0: f64,
-    n_substeps: usize,
-    rep: &mut RunReport,
-) -> Result<(), MpmError> {
-    let cached = sim.wide_cache.take::<Buffers<T>>().unwrap_or_default();
-    let mut e = Engine::<T, M>::new(sim, state, mat, cached);
-    for k in 0..n_substeps {
-        let outcome = e.substep(t0 + k as f64 * sim.config.dt, true);
-        e.record(k, outcome, state, rep)?;
-    }
-    e.write_back(state);
-    sim.wide_cache.put(e.into_buffers());
-    Ok(())
 }

@@ -136,22 +136,34 @@ impl<T: Real> Soa<T> {
         out
     }
 
-    /// Writes every particle back to `s` (particle `i` = slot `i`), positions shifted by
-    /// `+origin` (m).
-    pub fn to_state(&self, origin: DVec3, s: &mut State) {
+    /// Writes the particles into `s` in the caller's order: particle `p` from slot `rank[p]`,
+    /// positions shifted by `+origin` (m). Only `x` and `v` when `motion_only`, else `C` and
+    /// `F` too.
+    pub fn to_state(&self, rank: &[u32], origin: DVec3, s: &mut State, motion_only: bool) {
         let st = self.stride;
         let (xs, d) = (&self.x, &self.vcf);
         s.x.par_chunks_mut(CONVERT_CHUNK)
             .zip(s.v.par_chunks_mut(CONVERT_CHUNK))
-            .zip(s.c.par_chunks_mut(CONVERT_CHUNK))
-            .zip(s.f.par_chunks_mut(CONVERT_CHUNK))
-            .enumerate()
-            .for_each(|(t, (((x, v), c), f))| {
-                for k in 0..x.len() {
-                    let i = t * CONVERT_CHUNK + k;
+            .zip(rank.par_chunks(CONVERT_CHUNK))
+            .for_each(|((x, v), rank)| {
+                for (k, &i) in rank.iter().enumerate() {
+                    let i = i as usize;
                     let at = |field: usize| d[field * st + i].f64();
                     x[k] = DVec3::new(xs[i].f64(), xs[st + i].f64(), xs[2 * st + i].f64()) + origin;
                     v[k] = DVec3::new(at(V), at(V + 1), at(V + 2));
+                }
+            });
+        if motion_only {
+            return;
+        }
+        s.c.par_chunks_mut(CONVERT_CHUNK)
+            .zip(s.f.par_chunks_mut(CONVERT_CHUNK))
+            .zip(rank.par_chunks(CONVERT_CHUNK))
+            .for_each(|((c, f), rank)| {
+                for (k, &i) in rank.iter().enumerate() {
+                    let i = i as usize;
+                    let at = |field: usize| d[field * st + i].f64();
+                    // Column-major matrices from row-major fields.
                     let m = |b: usize| {
                         DMat3::from_cols_array(&[
                             at(b),

@@ -54,10 +54,8 @@ impl<T: Real> Checkpoint<T> {
 
     /// The state in the caller's order (positions shifted by `+origin`, m).
     pub fn state(&self, origin: DVec3) -> State {
-        let mut out = Soa::new(self.p.n);
-        self.p.permute_into(&self.rank(), &mut out);
         let mut s = State::at_rest(vec![DVec3::ZERO; self.p.n]);
-        out.to_state(origin, &mut s);
+        self.p.to_state(&self.rank(), origin, &mut s, false);
         s
     }
 }
@@ -126,7 +124,10 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
             });
         }
         let outcome = e.step(t0 + k as f64 * sim.config.dt);
-        e.record(k, outcome, state, rep)?;
+        if let Err(err) = e.record(k, outcome, rep) {
+            e.write_back(state);
+            return Err(err);
+        }
     }
     let last = Checkpoint {
         p: kept_copy(&mut pool, &e.p),
