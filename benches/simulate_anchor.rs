@@ -6,10 +6,12 @@
 //! with 1 and 2 threads. Each run writes its inputs (a PLY and a simulation file) to a
 //! temporary directory, runs the `pipe` binary on them and reports the whole command's time per
 //! substep from its `summary.json` (reading, setup, the frame PLYs and `particles.arrow`
-//! included), one JSON line per run.
+//! included), one JSON line per case and thread count.
 //!
 //! `cargo bench -p pipe --bench simulate_anchor`
 //!
+//! * Ours is the median of `PIPE_BENCH_REPEATS` runs (default 3, as the anchors' medians of
+//!   3 repeats), every run's time listed too.
 //! * `PIPE_BENCH_CASES=fcr_20k,nh_100k` runs some cases; `PIPE_BENCH_THREADS=2` some thread
 //!   counts; `PIPE_BENCH_PRECISION=f64` runs `pipe simulate --precision f64` (default `f32`,
 //!   the anchors' precision).
@@ -156,8 +158,19 @@ fn precision() -> String {
     std::env::var("PIPE_BENCH_PRECISION").unwrap_or_else(|_| "f32".into())
 }
 
-/// Runs `pipe --threads t simulate` and prints its time per substep.
-fn run_ours(case: &Case, dir: &Path, threads: usize) {
+/// Times of our runs per case and thread count (`PIPE_BENCH_REPEATS`, default 3, as the
+/// anchors' `--repeats 3`).
+fn repeats() -> usize {
+    std::env::var("PIPE_BENCH_REPEATS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .filter(|&r| r > 0)
+        .unwrap_or(3)
+}
+
+/// One `pipe --threads t simulate` run: the whole command's time from its `summary.json` (s),
+/// the process's wall time (s), its substeps and output particle count.
+fn run_once(case: &Case, dir: &Path, threads: usize) -> (f64, f64, u64, serde_json::Value) {
     let out = dir.join(format!("out-{threads}"));
     let started = std::time::Instant::now();
     let status = Command::new(env!("CARGO_BIN_EXE_pipe"))
@@ -184,18 +197,32 @@ fn run_ours(case: &Case, dir: &Path, threads: usize) {
             .expect("summary.json is JSON");
     let wall = summary["wall_time_s"].as_f64().expect("wall_time_s");
     let substeps = summary["substeps_total"].as_u64().expect("substeps_total");
+    (wall, process_s, substeps, summary["particles_out"].clone())
+}
+
+/// Runs `pipe --threads t simulate` [`repeats`] times and prints the median time per substep
+/// (and every run's).
+fn run_ours(case: &Case, dir: &Path, threads: usize) {
+    let mut runs: Vec<(f64, f64, u64, serde_json::Value)> =
+        (0..repeats()).map(|_| run_once(case, dir, threads)).collect();
+    let all_ms: Vec<String> = runs
+        .iter()
+        .map(|r| format!("{:.4}", r.0 * 1e3 / r.2 as f64))
+        .collect();
+    runs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (wall, process_s, substeps, particles_out) = runs.swap_remove(runs.len() / 2);
     let per_substep_ms = wall * 1e3 / substeps as f64;
     println!(
         "{{\"who\":\"pipe simulate\",\"case\":\"{}\",\"N\":{},\"G\":{},\"threads\":{threads},\
          \"precision\":\"{}\",\"substeps\":{substeps},\"wall_s\":{wall:.4},\"process_s\":{process_s:.4},\
-         \"ms_per_substep\":{per_substep_ms:.4},\"Mpart_substeps_per_s\":{:.3},\
-         \"particles_out\":{}}}",
+         \"ms_per_substep\":{per_substep_ms:.4},\"runs_ms_per_substep\":[{}],\
+         \"Mpart_substeps_per_s\":{:.3},\"particles_out\":{particles_out}}}",
         case.name,
         case.n,
         case.g,
         precision(),
+        all_ms.join(","),
         case.n as f64 / per_substep_ms / 1e3,
-        summary["particles_out"],
     );
 }
 
