@@ -203,8 +203,9 @@ fn run_once(case: &Case, dir: &Path, threads: usize) -> (f64, f64, u64, serde_js
 /// Runs `pipe --threads t simulate` [`repeats`] times and prints the median time per substep
 /// (and every run's).
 fn run_ours(case: &Case, dir: &Path, threads: usize) {
-    let mut runs: Vec<(f64, f64, u64, serde_json::Value)> =
-        (0..repeats()).map(|_| run_once(case, dir, threads)).collect();
+    let mut runs: Vec<(f64, f64, u64, serde_json::Value)> = (0..repeats())
+        .map(|_| run_once(case, dir, threads))
+        .collect();
     let all_ms: Vec<String> = runs
         .iter()
         .map(|r| format!("{:.4}", r.0 * 1e3 / r.2 as f64))

@@ -46,7 +46,20 @@ impl State {
         if n == 0 {
             return Err(MpmError::EmptyParticles);
         }
+        self.check_len(n)?;
+        for i in 0..n {
+            check_vec("x", i, self.x[i])?;
+            check_vec("v", i, self.v[i])?;
+            check_mat("C", i, &self.c[i])?;
+            check_mat("F", i, &self.f[i])?;
+        }
+        Ok(())
+    }
+
+    /// Checks that `x`, `v`, `C` and `F` hold `n` particles each.
+    pub(crate) fn check_len(&self, n: usize) -> Result<(), MpmError> {
         for (field, len) in [
+            ("x", self.x.len()),
             ("v", self.v.len()),
             ("C", self.c.len()),
             ("F", self.f.len()),
@@ -58,12 +71,6 @@ impl State {
                     expected: n,
                 });
             }
-        }
-        for i in 0..n {
-            check_vec("x", i, self.x[i])?;
-            check_vec("v", i, self.v[i])?;
-            check_mat("C", i, &self.c[i])?;
-            check_mat("F", i, &self.f[i])?;
         }
         Ok(())
     }

@@ -131,21 +131,7 @@ impl<M: Constitutive> Stepper<'_, M> {
     }
 
     fn read_into(&self, state: &mut State, motion_only: bool) -> Result<(), MpmError> {
-        let expected = self.len();
-        for (field, len) in [
-            ("x", state.x.len()),
-            ("v", state.v.len()),
-            ("c", state.c.len()),
-            ("f", state.f.len()),
-        ] {
-            if len != expected {
-                return Err(MpmError::LengthMismatch {
-                    field,
-                    len,
-                    expected,
-                });
-            }
-        }
+        state.check_len(self.len())?;
         with_engine!(&self.engine, e => on_worker(|| e.read(state, motion_only)));
         Ok(())
     }

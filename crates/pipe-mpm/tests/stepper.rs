@@ -3,21 +3,20 @@
 //! (a kept state keeps its particle groups where each run sorts afresh), for any thread count
 //! bit for bit, and it must read back exactly what it holds.
 
+#[path = "common/rng.rs"]
+mod rng;
+
 use glam::{DMat3, DVec3};
 use pipe_mpm::{
     Aabb, Material, MpmError, NeoHookean, ParticleForce, Precision, SimConfig, Simulator, State,
 };
+use rng::Rng;
 
 /// A falling, spinning block of `n` random particles with an impulse on some of them, in
 /// `precision`.
 fn scene(precision: Precision) -> (Simulator<NeoHookean>, State, Material) {
-    let mut seed = 777u64;
-    let mut r = move || {
-        seed = seed
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (seed >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut rng = Rng::seeded("stepper");
+    let mut r = move || rng.unit();
     let n = 3000;
     let x: Vec<DVec3> = (0..n)
         .map(|_| DVec3::new(0.3 + 0.3 * r(), 0.15 + 0.3 * r(), 0.3 + 0.3 * r()))
