@@ -13,8 +13,8 @@
 //! * `MPM_AD=1`: forward (checkpointed tape) and backward timed separately, 16 substeps,
 //!   N = 20k, G = 32, nh and fcr, threads from `MPM_AD_THREADS` (default 1), median of
 //!   `MPM_AD_REPS` (default 3) after one warm-up; `MPM_AD_N` changes N, `MPM_AD_CASE=nh|fcr`
-//!   runs one model. Loss = mean final y, its gradient added in place
-//!   ([`Simulator::backward_into`]).
+//!   runs one model, `MPM_SNAPSHOTS` sets [`BackwardOptions::snapshots`]. Loss = mean final y,
+//!   its gradient added in place ([`Simulator::backward_into`]).
 //! * `MPM_ROLLOUT=run|tape|tape+bwd`: one differentiable rollout of `MPM_FRAMES` (14) frames of
 //!   `MPM_SUBSTEPS_PER_FRAME` (50) substeps, N = 20k, G = 32, nh, checkpoint per frame; for
 //!   peak-memory measurements (`run` = plain forward, no tape). Frames count as `pipe simulate
@@ -105,7 +105,10 @@ fn ad_case<M: Constitutive + Clone>(
                         }
                         Ok(())
                     },
-                    BackwardOptions::default(),
+                    BackwardOptions {
+                        snapshots: env_usize("MPM_SNAPSHOTS", pipe_mpm::adjoint::SEGMENT_SNAPSHOTS),
+                        ..BackwardOptions::default()
+                    },
                 )
                 .unwrap();
             let t_b = t.elapsed().as_secs_f64();
