@@ -9,8 +9,8 @@
 //! PAC-NeRF's own simulator made (`tests/fixtures/trajectories`), v0 from frame 4 (before the
 //! ground) and then from frames 4 and 7 (across it), starting 10× low: the torus's Young's
 //! modulus, the blob's yield stress and the droplet's viscosity:
-//! `cargo test -p pipe-mpm --release --test identify -- --ignored --nocapture` (~10 min on
-//! 2 cores; measured: E 1.0013e6 Pa, yield stress 1996 Pa, viscosity 200.5 Pa·s).
+//! `cargo test -p pipe-mpm --release --test identify -- --ignored --nocapture` (~19 min on
+//! 2 cores; measured at `a60c9ab`: E 1.0035e6 Pa, yield stress 1996 Pa, viscosity 200.8 Pa·s).
 
 use glam::DVec3;
 use pipe_mpm::{
