@@ -49,6 +49,17 @@
 //! family choice, monomorphised inside), `order` (permutations of the particles), `isa`
 //! (run-time AVX2 + FMA choice), `stepper` (a state kept in the engine between runs).
 
+/// `$body` with `$x` bound to the payload of `$value`, a value of the enum `$kind` that holds
+/// one variant per [`Precision`] (`F64`, `F32`) of a type generic in it (a tape, an engine).
+macro_rules! per_precision {
+    ($kind:ident, $value:expr, $x:ident => $body:expr) => {
+        match $value {
+            $kind::F64($x) => $body,
+            $kind::F32($x) => $body,
+        }
+    };
+}
+
 pub mod adjoint;
 pub mod boundary;
 mod error;

@@ -20,16 +20,6 @@ enum Kept<'s, M: Constitutive> {
     F32(Engine<'s, f32, M>),
 }
 
-/// `$body` with `$e` bound to the engine, whatever its precision.
-macro_rules! with_engine {
-    ($kept:expr, $e:ident => $body:expr) => {
-        match $kept {
-            Kept::F64($e) => $body,
-            Kept::F32($e) => $body,
-        }
-    };
-}
-
 /// A simulator's particles kept in its engine between calls to [`Stepper::advance`] (from
 /// [`Simulator::stepper`]). Its runs give what [`Simulator::run`] gives to rounding: the
 /// engine sums each node's contributions in the order of its particle groups, and a kept state
@@ -80,7 +70,7 @@ impl<M: Constitutive> Simulator<M> {
 impl<M: Constitutive> Stepper<'_, M> {
     /// Number of particles.
     pub fn len(&self) -> usize {
-        with_engine!(&self.engine, e => e.p.n)
+        per_precision!(Kept, &self.engine, e => e.p.n)
     }
 
     /// `true` without particles.
@@ -105,7 +95,7 @@ impl<M: Constitutive> Stepper<'_, M> {
             max_held: held,
             ..RunReport::default()
         };
-        with_engine!(&mut self.engine, e => on_worker(|| {
+        per_precision!(Kept, &mut self.engine, e => on_worker(|| {
             e.dt = dt;
             for k in 0..n_substeps {
                 let outcome = e.substep(t0 + k as f64 * dt, true);
@@ -132,20 +122,20 @@ impl<M: Constitutive> Stepper<'_, M> {
 
     fn read_into(&self, state: &mut State, motion_only: bool) -> Result<(), MpmError> {
         state.check_len(self.len())?;
-        with_engine!(&self.engine, e => on_worker(|| e.read(state, motion_only)));
+        per_precision!(Kept, &self.engine, e => on_worker(|| e.read(state, motion_only)));
         Ok(())
     }
 
     /// The whole state as a new [`State`].
     pub fn state(&self) -> State {
         let mut s = State::at_rest(vec![DVec3::ZERO; self.len()]);
-        with_engine!(&self.engine, e => on_worker(|| e.read(&mut s, false)));
+        per_precision!(Kept, &self.engine, e => on_worker(|| e.read(&mut s, false)));
         s
     }
 }
 
 impl<M: Constitutive> Drop for Stepper<'_, M> {
     fn drop(&mut self) {
-        with_engine!(&mut self.engine, e => e.sim.wide_cache.put(e.take_buffers()));
+        per_precision!(Kept, &mut self.engine, e => e.sim.wide_cache.put(e.take_buffers()));
     }
 }

@@ -53,36 +53,26 @@ impl Drop for Tape {
         let Some(pool) = self.pool.upgrade() else {
             return;
         };
-        match &mut self.data {
-            TapeData::F64(t) => pool.put(t.take_buffers()),
-            TapeData::F32(t) => pool.put(t.take_buffers()),
-        }
+        per_precision!(TapeData, &mut self.data, t => pool.put(t.take_buffers()));
     }
 }
 
 impl Tape {
     /// Number of checkpoints kept (`⌈n_substeps / every⌉`).
     pub fn checkpoint_count(&self) -> usize {
-        match &self.data {
-            TapeData::F64(t) => t.checkpoints.len(),
-            TapeData::F32(t) => t.checkpoints.len(),
-        }
+        per_precision!(TapeData, &self.data, t => t.checkpoints.len())
     }
 
     /// Checkpoint `j` (the state at substep `j·every`) in the caller's particle order.
     pub fn checkpoint(&self, j: usize) -> Option<State> {
-        match &self.data {
-            TapeData::F64(t) => t.checkpoints.get(j).map(|c| c.state(t.origin)),
-            TapeData::F32(t) => t.checkpoints.get(j).map(|c| c.state(t.origin)),
-        }
+        per_precision!(TapeData, &self.data, t => {
+            t.checkpoints.get(j).map(|c| c.state(t.origin))
+        })
     }
 
     /// Particles on the tape.
     fn len(&self) -> usize {
-        match &self.data {
-            TapeData::F64(t) => t.last.p.n,
-            TapeData::F32(t) => t.last.p.n,
-        }
+        per_precision!(TapeData, &self.data, t => t.last.p.n)
     }
 }
 
@@ -325,8 +315,8 @@ impl<M: Constitutive> Simulator<M> {
         let mut seed_fn = |k: usize, src: &dyn SeedSource, sink: &mut dyn GradSink| {
             seed(k, SeedState { src }, &mut SeedGrad { sink })
         };
-        let (state, material) = crate::sim::on_worker(|| match &tape.data {
-            TapeData::F64(t) => backward(
+        let (state, material) = crate::sim::on_worker(|| {
+            per_precision!(TapeData, &tape.data, t => backward(
                 self,
                 t,
                 mat,
@@ -336,18 +326,7 @@ impl<M: Constitutive> Simulator<M> {
                 start,
                 opts.snapshots,
                 &mut seed_fn,
-            ),
-            TapeData::F32(t) => backward(
-                self,
-                t,
-                mat,
-                tape.t0,
-                n,
-                tape.every,
-                start,
-                opts.snapshots,
-                &mut seed_fn,
-            ),
+            ))
         })?;
         Ok(Gradients {
             state,

@@ -13,14 +13,16 @@ use glam::DMat3;
 
 use super::groups::Group;
 use super::simd::{Real, Wide, WideOp};
-use super::stress::{Mat, cofactor, ddot, det_with, mul, mul_at, mul_bt, polar, predict};
+use super::stress::{
+    Mat, SlotMaterial, cofactor, ddot, det_with, lane_of, mul, mul_at, mul_bt, polar, predict,
+};
 use super::transfer::{Axis, gather, momentum, weights};
 use crate::boundary::Boundaries;
 use crate::grid::{GridSpec, NodeBox};
 use crate::grid_update::mass_threshold;
 use crate::math::{from_rows, to_rows};
 use crate::models::{Constitutive, LaneKernel, particle_model};
-use crate::state::{FamilyGrad, FamilyParams};
+use crate::state::FamilyGrad;
 use crate::svd::{polar_rotation_adjoint, rotation_adjoint, svd3};
 
 /// `d w_a / d fx` of the quadratic B-spline on one axis: `fx − 1.5`, `−2 (fx − 1)`, `fx − 0.5`.
@@ -420,7 +422,6 @@ pub(crate) struct ModelAdjTask<'a, T, M> {
     /// `4/dx²` (1/m²).
     pub d_inv: f64,
     pub real: usize,
-    pub uniform: bool,
     pub v: [&'a [T]; 3],
     pub c: [&'a [T]; 9],
     pub f: [&'a [T]; 9],
@@ -428,24 +429,8 @@ pub(crate) struct ModelAdjTask<'a, T, M> {
     pub aux: &'a [T],
     pub abar: [&'a [T]; 9],
     pub sm: &'a [T],
-    pub mass: &'a [T],
-    pub volume: &'a [T],
-    pub mu: &'a [T],
-    pub lam: &'a [T],
-    pub mu64: &'a [f64],
-    pub lam64: &'a [f64],
-    pub family: &'a [FamilyParams],
+    pub mat: SlotMaterial<'a, T>,
     pub g: ModelAdjGrad<'a, T>,
-}
-
-/// Particles `i..` of a per-particle array, or its first value everywhere when `uniform`.
-#[inline(always)]
-fn lane_of<W: Wide>(w: W, v: &[W::T], i: usize, uniform: bool) -> W::V {
-    if uniform {
-        w.splat(v[0])
-    } else {
-        w.load(&v[i..])
-    }
 }
 
 /// Adds the first `n` lanes of `v` to `acc` (in `f64`).
@@ -479,9 +464,9 @@ impl<T: Real, M: Constitutive> WideOp<T> for ModelAdjTask<'_, T, M> {
         let mut probe = [w.zero(); 4];
         for i in (0..len).step_by(T::N) {
             let n = t.real.saturating_sub(i).min(T::N);
-            let u = t.uniform;
-            let m = lane_of(w, t.mass, i, u);
-            let vol = lane_of(w, t.volume, i, u);
+            let u = t.mat.uniform;
+            let m = lane_of(w, t.mat.mass, i, u);
+            let vol = lane_of(w, t.mat.volume, i, u);
             let c: Mat<W> = arr!(9, |k| w.load(&t.c[k][i..]));
             let f: Mat<W> = arr!(9, |k| w.load(&t.f[k][i..]));
             let ab: Mat<W> = arr!(9, |k| w.load(&t.abar[k][i..]));
@@ -536,13 +521,13 @@ impl<T: Real, M: Constitutive> WideOp<T> for ModelAdjTask<'_, T, M> {
                             }))
                         };
                         let (cm, fm) = (mat(&cl), mat(&fl));
-                        let model = particle_model(t.model, t.family, p);
+                        let model = particle_model(t.model, t.mat.family, p);
                         let ft = model.predict(&cm, &fm, t.dt);
                         let mg = model.update_adjoint_given_stress(
                             &ft,
                             &cm,
-                            t.mu64[p],
-                            t.lam64[p],
+                            t.mat.mu64[p],
+                            t.mat.lam64[p],
                             t.dt,
                             (&mat(&tl), auxl[l].f64()),
                             &mat(&gfl),
@@ -570,8 +555,8 @@ impl<T: Real, M: Constitutive> WideOp<T> for ModelAdjTask<'_, T, M> {
                 }
                 kernel => {
                     let ft = predict(w, &c, &f, dt);
-                    let mu = lane_of(w, t.mu, i, u);
-                    let lam = lane_of(w, t.lam, i, u);
+                    let mu = lane_of(w, t.mat.mu, i, u);
+                    let lam = lane_of(w, t.mat.lam, i, u);
                     let (gft, gmu, glam, tau) = if kernel == LaneKernel::NeoHookean {
                         let ln_j = w.load(&t.aux[i..]);
                         neo_hookean_adjoint(w, &ft, mu, lam, ln_j, &gf_next, &gtau)

@@ -297,3 +297,13 @@ impl Groups {
         out
     }
 }
+
+/// The first slot of each of `tasks` ([`Groups::tasks`]), then `n`: the cuts that split the
+/// per-slot outputs between the tasks.
+pub fn task_cuts(tasks: &[(&[Group], usize, usize)], n: usize) -> Vec<usize> {
+    tasks
+        .iter()
+        .map(|t| t.1)
+        .chain(std::iter::once(n))
+        .collect()
+}

@@ -40,10 +40,10 @@ mod tests;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use self::groups::Groups;
+use self::groups::{Groups, task_cuts};
 use self::simd::{Precise, Real};
 use self::soa::{C, F, Soa, V, padded};
-use self::stress::{Kept, StressTask};
+use self::stress::{Kept, SlotMaterial, StressTask};
 use self::transfer::{G2pOut, G2pTask, P2gTask};
 use crate::boundary::Boundaries;
 use crate::error::MpmError;
@@ -159,14 +159,12 @@ pub(crate) fn grid_update<T: Real>(
         .reduce(|| 0.0, f64::max)
 }
 
-/// `v[r]`, or `v` itself when empty (a per-particle array that is only kept when needed).
-pub(crate) fn part(v: &[f64], r: std::ops::Range<usize>) -> &[f64] {
-    if v.is_empty() { v } else { &v[r] }
-}
-
-/// The slots `r` of a per-particle array, or all of it when `uniform` (one value).
-pub(crate) fn per_slot<T>(v: &[T], r: std::ops::Range<usize>, uniform: bool) -> &[T] {
-    if uniform { v } else { &v[r] }
+/// Starts of the chunks of `chunk` entries covering `0..len`, then `len`.
+pub(crate) fn chunk_cuts(len: usize, chunk: usize) -> Vec<usize> {
+    (0..len.div_ceil(chunk))
+        .map(|k| k * chunk)
+        .chain(std::iter::once(len))
+        .collect()
 }
 
 /// The intermediates of one substep that its adjoint reads: the groups, `A`, τ and the
@@ -528,10 +526,7 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         let f: [&mut [T]; 9] = fields_mut(tail, st, 0);
         let b = &mut self.b;
         let work = &mut b.work;
-        let cuts: Vec<usize> = (0..st.div_ceil(STRESS_CHUNK))
-            .map(|k| k * STRESS_CHUNK)
-            .chain(std::iter::once(st))
-            .collect();
+        let cuts = chunk_cuts(st, STRESS_CHUNK);
         let a = split_fields(fields_mut::<T, 9>(&mut work.a, st, 0), &cuts);
         let kept: Vec<Kept<'_, T>> = if self.keep {
             let taus: Vec<Option<[&mut [T]; 9]>> = if Self::KEEP_TAU {
@@ -550,9 +545,7 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
             (0..cuts.len() - 1).map(|_| None).collect()
         };
         let model = &sim.model;
-        let mat = &self.mat;
-        let (mass, volume, mu, lam) = (&b.mass, &b.volume, &b.mu, &b.lam);
-        let uniform = self.uniform;
+        let mat = SlotMaterial::new([&b.mass, &b.volume, &b.mu, &b.lam], &self.mat, self.uniform);
         split_fields(f, &cuts)
             .into_par_iter()
             .zip(a)
@@ -561,26 +554,13 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
             .map(|(k, ((f, a), keep))| {
                 let r = cuts[k]..cuts[k + 1];
                 let real = n.saturating_sub(r.start).min(r.len());
-                let rr = r.start..r.start + real;
-                let family = if mat.family.is_empty() {
-                    &mat.family[..]
-                } else {
-                    &mat.family[rr.clone()]
-                };
                 isa.run_wide(StressTask {
                     model,
                     dt,
                     d_inv,
                     real,
-                    uniform,
                     c: c.map(|x| &x[r.clone()]),
-                    mass: per_slot(mass, r.clone(), uniform),
-                    volume: per_slot(volume, r.clone(), uniform),
-                    mu: per_slot(mu, r.clone(), uniform),
-                    lam: per_slot(lam, r.clone(), uniform),
-                    mu64: part(&mat.mu, rr.clone()),
-                    lam64: part(&mat.lam, rr),
-                    family,
+                    mat: mat.slots(r.clone(), real),
                     f0: f0.map(|f0| f0.map(|x| &x[r.clone()])),
                     f,
                     a,
@@ -651,11 +631,7 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         let grid = &self.sim.grid;
         let (n, st) = (self.p.n, self.p.stride);
         let tasks = self.b.work.groups.tasks(G2P_CHUNK);
-        let cuts: Vec<usize> = tasks
-            .iter()
-            .map(|t| t.1)
-            .chain(std::iter::once(n))
-            .collect();
+        let cuts = task_cuts(&tasks, n);
         let x: [&mut [T]; 3] = fields_mut(&mut self.b.x_next, st, 0);
         let (x_own, vcf) = (&self.p.x, &mut self.p.vcf);
         let x_old: [&[T]; 3] = fields(src.map_or(x_own, |s| &s.x), st, 0);
@@ -760,11 +736,9 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         &self.b.work
     }
 
-    /// Per-particle mass, volume, μ, λ (slot order, padded; one value when uniform), the
-    /// slot-order `f64` material (empty unless a per-particle model needs it), and whether
-    /// uniform.
-    pub(crate) fn material(&self) -> ([&[T]; 4], &Material, bool) {
+    /// The per-particle material in slot order (padded; one value each when uniform).
+    pub(crate) fn material(&self) -> SlotMaterial<'_, T> {
         let b = &self.b;
-        ([&b.mass, &b.volume, &b.mu, &b.lam], &self.mat, self.uniform)
+        SlotMaterial::new([&b.mass, &b.volume, &b.mu, &b.lam], &self.mat, self.uniform)
     }
 }

@@ -106,10 +106,7 @@ impl<T: Real> Soa<T> {
         let n = s.len();
         let mut out = out.filter(|o| o.n == n).unwrap_or_else(|| Self::new(n));
         let st = out.stride;
-        let cuts: Vec<usize> = (0..n.div_ceil(CONVERT_CHUNK))
-            .map(|k| k * CONVERT_CHUNK)
-            .chain(std::iter::once(n))
-            .collect();
+        let cuts = super::chunk_cuts(n, CONVERT_CHUNK);
         let xf: [&mut [T]; 3] = super::fields_mut(&mut out.x, st, 0);
         let fields: [&mut [T]; VCF] = super::fields_mut(&mut out.vcf, st, 0);
         super::split_fields(xf, &cuts)

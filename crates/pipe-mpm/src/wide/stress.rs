@@ -8,7 +8,7 @@ use glam::DMat3;
 use super::simd::{Real, Wide, WideOp};
 use crate::math::{from_rows, to_rows};
 use crate::models::{Constitutive, LaneKernel, particle_model};
-use crate::state::FamilyParams;
+use crate::state::{FamilyParams, Material};
 use crate::svd::polar_rotation;
 
 /// A 3×3 matrix of lanes, row-major (`m[3r + c]`).
@@ -238,11 +238,70 @@ pub(crate) fn fixed_corotated<W: Wide>(w: W, f: &Mat<W>, mu: W::V, lam: W::V) ->
 
 /// Particles `i..` of a per-particle array, or its first value everywhere when `uniform`.
 #[inline(always)]
-fn per_particle<W: Wide>(w: W, v: &[W::T], i: usize, uniform: bool) -> W::V {
+pub(crate) fn lane_of<W: Wide>(w: W, v: &[W::T], i: usize, uniform: bool) -> W::V {
     if uniform {
         w.splat(v[0])
     } else {
         w.load(&v[i..])
+    }
+}
+
+/// `v[r]`, or `v` itself when empty (a per-particle array that is only kept when needed).
+fn part<T>(v: &[T], r: std::ops::Range<usize>) -> &[T] {
+    if v.is_empty() { v } else { &v[r] }
+}
+
+/// The slots `r` of a per-particle array, or all of it when `uniform` (one value).
+fn per_slot<T>(v: &[T], r: std::ops::Range<usize>, uniform: bool) -> &[T] {
+    if uniform { v } else { &v[r] }
+}
+
+/// The per-particle material of some slots: mass (kg), volume (m³), μ and λ (Pa) in `T`, one
+/// value each when `uniform`; and the `f64` μ, λ and family parameters the per-particle
+/// models read (empty unless a per-particle model or family parameters need them).
+#[derive(Clone, Copy)]
+pub(crate) struct SlotMaterial<'a, T> {
+    pub uniform: bool,
+    pub mass: &'a [T],
+    pub volume: &'a [T],
+    pub mu: &'a [T],
+    pub lam: &'a [T],
+    pub mu64: &'a [f64],
+    pub lam64: &'a [f64],
+    pub family: &'a [FamilyParams],
+}
+
+impl<'a, T> SlotMaterial<'a, T> {
+    /// `[mass, volume, μ, λ]` in slot order and the slot-order `f64` material `mat`.
+    pub fn new(t: [&'a [T]; 4], mat: &'a Material, uniform: bool) -> Self {
+        let [mass, volume, mu, lam] = t;
+        Self {
+            uniform,
+            mass,
+            volume,
+            mu,
+            lam,
+            mu64: &mat.mu,
+            lam64: &mat.lam,
+            family: &mat.family,
+        }
+    }
+
+    /// Slots `r` of this material, of which the first `real` hold particles (the rest
+    /// padding: the `f64` arrays have no entries for it).
+    pub fn slots(&self, r: std::ops::Range<usize>, real: usize) -> Self {
+        let rr = r.start..r.start + real;
+        let u = self.uniform;
+        Self {
+            uniform: u,
+            mass: per_slot(self.mass, r.clone(), u),
+            volume: per_slot(self.volume, r.clone(), u),
+            mu: per_slot(self.mu, r.clone(), u),
+            lam: per_slot(self.lam, r, u),
+            mu64: part(self.mu64, rr.clone()),
+            lam64: part(self.lam64, rr.clone()),
+            family: part(self.family, rr),
+        }
     }
 }
 
@@ -257,17 +316,8 @@ pub(crate) struct StressTask<'a, T, M> {
     /// `4/dx²` (1/m²).
     pub d_inv: f64,
     pub real: usize,
-    /// Whether every particle has the same mass, volume, μ and λ (then read once).
-    pub uniform: bool,
     pub c: [&'a [T]; 9],
-    pub mass: &'a [T],
-    pub volume: &'a [T],
-    pub mu: &'a [T],
-    pub lam: &'a [T],
-    /// The per-particle path's `f64` parameters (first `real` entries).
-    pub mu64: &'a [f64],
-    pub lam64: &'a [f64],
-    pub family: &'a [FamilyParams],
+    pub mat: SlotMaterial<'a, T>,
     /// `F` in (when separate from the output) and new `F` out (in place otherwise).
     pub f0: Option<[&'a [T]; 9]>,
     pub f: [&'a mut [T]; 9],
@@ -305,17 +355,14 @@ impl<T: Real, M: Constitutive> StressTask<'_, T, M> {
                 None => arr!(9, |j| w.load(&self.f[j][i..])),
             };
             let ft = predict(w, &c, &f0, dt);
-            let u = self.uniform;
-            let (mu, lam) = (
-                per_particle(w, self.mu, i, u),
-                per_particle(w, self.lam, i, u),
-            );
+            let (mat, u) = (&self.mat, self.mat.uniform);
+            let (mu, lam) = (lane_of(w, mat.mu, i, u), lane_of(w, mat.lam, i, u));
             let (tau, aux) = match kernel {
                 LaneKernel::NeoHookean => neo_hookean(w, &ft, mu, lam),
                 _ => (fixed_corotated(w, &ft, mu, lam), w.zero()),
             };
-            let kv = w.mul(k, per_particle(w, self.volume, i, u));
-            let m = per_particle(w, self.mass, i, u);
+            let kv = w.mul(k, lane_of(w, mat.volume, i, u));
+            let m = lane_of(w, mat.mass, i, u);
             for j in 0..9 {
                 bad |= w.non_finite_mask(ft[j]);
                 w.store(ft[j], &mut self.f[j][i..]);
@@ -347,13 +394,14 @@ impl<T: Real, M: Constitutive> StressTask<'_, T, M> {
                 Some(f0) => at(f0),
                 None => at(self.f.each_ref().map(|x| &**x)),
             };
-            let model = particle_model(self.model, self.family, p);
+            let mat = &self.mat;
+            let model = particle_model(self.model, mat.family, p);
             let ft = model.predict(&c, &f0, self.dt);
             let (f_new, tau, aux) =
-                model.update_with_aux(&ft, &c, self.mu64[p], self.lam64[p], self.dt);
+                model.update_with_aux(&ft, &c, mat.mu64[p], mat.lam64[p], self.dt);
             bad |= !f_new.is_finite();
-            let q = if self.uniform { 0 } else { p };
-            let a = tau * (-self.dt * self.volume[q].f64() * self.d_inv) + c * self.mass[q].f64();
+            let q = if mat.uniform { 0 } else { p };
+            let a = tau * (-self.dt * mat.volume[q].f64() * self.d_inv) + c * mat.mass[q].f64();
             let (fr, ar, tr) = (to_rows(&f_new), to_rows(&a), to_rows(&tau));
             for j in 0..9 {
                 self.f[j][p] = T::of(fr[j / 3][j % 3]);

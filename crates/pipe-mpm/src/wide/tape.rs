@@ -19,12 +19,11 @@ use rayon::prelude::*;
 use super::adjoint::{
     G2pAdjTask, ModelAdjGrad, ModelAdjTask, P2gAdjOut, P2gAdjTask, grid_update_adjoint,
 };
-use super::groups::Group;
+use super::groups::{Group, task_cuts};
 use super::simd::{Precise, Real};
 use super::soa::{C, F, Soa, V};
 use super::{
-    Buffers, Engine, G2P_CHUNK, STRESS_CHUNK, Work, fields, fields_mut, part, per_slot,
-    split_fields,
+    Buffers, Engine, G2P_CHUNK, STRESS_CHUNK, Work, chunk_cuts, fields, fields_mut, split_fields,
 };
 use crate::adjoint::schedule::Schedule;
 use crate::error::MpmError;
@@ -343,14 +342,10 @@ pub(crate) fn adjoint_step<T: Precise, M: Constitutive>(
         adj.abar = vec![T::of(0.0); 9 * st];
         adj.sm = vec![T::of(0.0); st];
     }
-    let ([mass, volume, mu, lam], mat, uniform) = e.material();
+    let mat = e.material();
     {
         let tasks = groups.tasks(G2P_CHUNK);
-        let cuts: Vec<usize> = tasks
-            .iter()
-            .map(|t| t.1)
-            .chain(std::iter::once(n))
-            .collect();
+        let cuts = task_cuts(&tasks, n);
         let x: [&[T]; 3] = fields(&s.x, st, 0);
         let v: [&[T]; 3] = fields(&s.vcf, st, V);
         let a: [&[T]; 9] = fields(&work.a, st, 0);
@@ -374,8 +369,8 @@ pub(crate) fn adjoint_step<T: Precise, M: Constitutive>(
                     x,
                     v,
                     a,
-                    mass,
-                    uniform_mass: uniform,
+                    mass: mat.mass,
+                    uniform_mass: mat.uniform,
                     extra,
                     gnodes,
                     out: P2gAdjOut { gx, sg, abar, sm },
@@ -383,10 +378,7 @@ pub(crate) fn adjoint_step<T: Precise, M: Constitutive>(
             });
     }
     // Per particle: v̄, C̄, τ̄, m̄, V̄ and the model's adjoint, in full vectors.
-    let cuts: Vec<usize> = (0..st.div_ceil(STRESS_CHUNK))
-        .map(|k| k * STRESS_CHUNK)
-        .chain(std::iter::once(st))
-        .collect();
+    let cuts = chunk_cuts(st, STRESS_CHUNK);
     let d_inv = 4.0 * grid.inv_dx * grid.inv_dx;
     let v: [&[T]; 3] = fields(&s.vcf, st, V);
     let c: [&[T]; 9] = fields(&s.vcf, st, C);
@@ -425,18 +417,11 @@ pub(crate) fn adjoint_step<T: Precise, M: Constitutive>(
             |(k, (((((((gv, gc), gf), gmass), gvolume), gmu), glam), gfamily))| {
                 let r = cuts[k]..cuts[k + 1];
                 let real = n.saturating_sub(r.start).min(r.len());
-                let rr = r.start..r.start + real;
-                let family = if mat.family.is_empty() {
-                    &mat.family[..]
-                } else {
-                    &mat.family[rr.clone()]
-                };
                 isa.run_wide(ModelAdjTask {
                     model: &sim.model,
                     dt,
                     d_inv,
                     real,
-                    uniform,
                     v: v.map(|x| &x[r.clone()]),
                     c: c.map(|x| &x[r.clone()]),
                     f: f.map(|x| &x[r.clone()]),
@@ -444,13 +429,7 @@ pub(crate) fn adjoint_step<T: Precise, M: Constitutive>(
                     aux: &work.aux[r.clone()],
                     abar: abar.map(|x| &x[r.clone()]),
                     sm: &adj.sm[r.clone()],
-                    mass: per_slot(mass, r.clone(), uniform),
-                    volume: per_slot(volume, r.clone(), uniform),
-                    mu: per_slot(mu, r.clone(), uniform),
-                    lam: per_slot(lam, r.clone(), uniform),
-                    mu64: part(&mat.mu, rr.clone()),
-                    lam64: part(&mat.lam, rr),
-                    family,
+                    mat: mat.slots(r.clone(), real),
                     g: ModelAdjGrad {
                         gv,
                         gc,
