@@ -28,6 +28,10 @@
 //!   particle-count sweeps.
 //! * `MPM_PRECISION=f32`: every case in `f32` ([`Precision::F32`]); `MPM_STEPS`: substeps per
 //!   timed call of the forward cases (default 10).
+//! * The forward cases keep the state in the engine between timed calls (a
+//!   [`pipe_mpm::Stepper`], as the anchors keep theirs in their fields and as `pipe simulate`
+//!   runs its frames); `MPM_PER_RUN=1` times one [`Simulator::run`] per call instead, loading
+//!   the state into the engine, sorting it and writing it back each time.
 
 #[path = "anchor_cube.rs"]
 mod anchor_cube;
@@ -242,11 +246,26 @@ fn forward<M: Constitutive + Clone>(b: Bencher, model: M, n: usize, g: usize, th
         .unwrap();
     let (sim, mut s, mat) = scene(model, n, g);
     // 10 substeps per iteration (`MPM_STEPS` changes it: the anchors time 100 at 20k and 20 at
-    // 100k in one go), so a run's per-call work (validation, sorting, conversions) counts.
+    // 100k in one go).
     let steps = env_usize("MPM_STEPS", 10);
-    pool.install(|| sim.run(&mut s, &mat, 0.0, 10).unwrap());
+    let dt = sim.config().dt;
+    if std::env::var("MPM_PER_RUN").is_ok() {
+        // One `Simulator::run` per iteration: loading, sorting and writing back count.
+        pool.install(|| sim.run(&mut s, &mat, 0.0, 10).unwrap());
+        b.counter(ItemsCount::new(n * steps)).bench_local(|| {
+            pool.install(|| sim.run(&mut s, &mat, 0.0, steps).unwrap());
+        });
+        return;
+    }
+    // The state stays in the engine between iterations, as the anchors' fields stay on their
+    // device between their timed loops (a `Stepper`, as `pipe simulate` runs its frames).
+    let mut stepper = pool.install(|| sim.stepper(&mut s, &mat)).unwrap();
+    let mut t = 0.0;
+    pool.install(|| stepper.advance(t, dt, 10).unwrap());
+    t += 10.0 * dt;
     b.counter(ItemsCount::new(n * steps)).bench_local(|| {
-        pool.install(|| sim.run(&mut s, &mat, 0.0, steps).unwrap());
+        pool.install(|| stepper.advance(t, dt, steps).unwrap());
+        t += steps as f64 * dt;
     });
 }
 

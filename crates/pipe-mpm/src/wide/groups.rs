@@ -42,11 +42,12 @@ pub(crate) struct Groups {
     pub first: Vec<usize>,
     /// The nodes the particles' stencils touch.
     pub touched: NodeBox,
-    /// Scratch of the slab bucketing: particles per x cell, each x cell's slab, next free
-    /// place of each slab.
+    /// Scratch of the slab bucketing: particles per x cell, each x cell's slab.
     per_cell: Vec<usize>,
     slab_of: Vec<u32>,
-    fill: Vec<usize>,
+    /// Scratch of the key tasks: each one's groups and particles per x cell.
+    task_groups: Vec<Vec<Group>>,
+    task_cells: Vec<Vec<usize>>,
 }
 
 /// The key pass of one task: each particle's stencil base `⌊x/dx − ½⌋` (local node index,
@@ -60,12 +61,15 @@ struct KeyTask<'a, T> {
     /// Positions from the task's first particle (padded arrays, so whole vectors load).
     x: [&'a [T]; 3],
     keys: &'a mut [u32],
+    /// The task's groups (runs of equal keys, cut at `T::N` and at the task's end), appended.
+    groups: &'a mut Vec<Group>,
+    /// The task's particles per x cell of their bases, added to.
+    per_cell: &'a mut [usize],
 }
 
 impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
-    /// The box of the bases and the task's groups (runs of equal keys, cut at `T::N` and at
-    /// the task's end).
-    type Output = ([usize; 3], [usize; 3], Vec<Group>);
+    /// The box of the bases.
+    type Output = ([usize; 3], [usize; 3]);
 
     #[inline(always)]
     fn with<W: Wide<T = T>>(self, w: W) -> Self::Output {
@@ -74,14 +78,16 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
             first,
             x,
             keys,
+            groups,
+            per_cell,
         } = self;
-        let mut groups = Vec::with_capacity(keys.len() / 4);
         let mut run = Group {
             start: first as u32,
             n: 0,
             cell: u32::MAX,
             base: [0; 3],
         };
+        let mut prev = u32::MAX;
         let n = keys.len();
         let inv = w.c(grid.inv_dx);
         let top: [W::V; 3] = arr!(3, |a| w.c((grid.dims[a] - 3) as f64));
@@ -125,25 +131,35 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
                     grid.linear([bu[0][l] as usize, bu[1][l] as usize, bu[2][l] as usize]) as u32
                 })
             };
-            keys[s..s + m].copy_from_slice(&k[..m]);
-            for l in 0..m {
-                if k[l] != run.cell || run.n as usize == T::N {
-                    if run.n > 0 {
-                        groups.push(run);
-                    }
-                    run = Group {
-                        start: (first + s + l) as u32,
-                        n: 0,
-                        cell: k[l],
-                        base: [bu[0][l], bu[1][l], bu[2][l]],
-                    };
+            if m == T::N {
+                // A whole vector: a copy of known length (no call to `memcpy`).
+                let whole: &mut [u32] = &mut keys[s..s + T::N];
+                for (out, key) in whole.iter_mut().zip(&k) {
+                    *out = *key;
                 }
-                run.n += 1;
+            } else {
+                keys[s..s + m].copy_from_slice(&k[..m]);
+            }
+            // Lanes whose key differs from the one before start a run (branch-free).
+            let mut starts = 0u32;
+            for (l, &key) in k[..m].iter().enumerate() {
+                starts |= u32::from(key != prev) << l;
+                prev = key;
+            }
+            while starts != 0 {
+                let l = starts.trailing_zeros() as usize;
+                starts &= starts - 1;
+                let at = (first + s + l) as u32;
+                push_run(groups, per_cell, run, at, T::N as u32);
+                run = Group {
+                    start: at,
+                    n: 0,
+                    cell: k[l],
+                    base: [bu[0][l], bu[1][l], bu[2][l]],
+                };
             }
         }
-        if run.n > 0 {
-            groups.push(run);
-        }
+        push_run(groups, per_cell, run, (first + n) as u32, T::N as u32);
         let box_of = |v: W::V, f: fn(f64, f64) -> f64, init: f64| {
             w.lanes(v)[..T::N]
                 .iter()
@@ -152,53 +168,99 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
         (
             arr!(3, |a| box_of(lo[a], f64::min, f64::MAX) as usize),
             arr!(3, |a| box_of(hi[a], f64::max, -1.0).max(0.0) as usize),
-            groups,
         )
+    }
+}
+
+/// The groups of the run of equal keys `run.start..end`: pieces of `lanes` particles, the
+/// last one shorter; its particles counted in their x cell.
+#[inline(always)]
+fn push_run(groups: &mut Vec<Group>, per_cell: &mut [usize], run: Group, end: u32, lanes: u32) {
+    if end > run.start {
+        per_cell[run.base[0] as usize] += (end - run.start) as usize;
+    }
+    let mut at = run.start;
+    while at < end {
+        let n = (end - at).min(lanes);
+        groups.push(Group {
+            start: at,
+            n,
+            ..run
+        });
+        at += n;
     }
 }
 
 impl Groups {
     /// Rebuilds keys, groups and slabs for the particles of `p` (positions inside the domain).
+    ///
+    /// Every pass runs by key task (`KEY_CHUNK` particles): the keys and each task's groups,
+    /// their concatenation, and the bucketing by slab (each task writes its groups to its own
+    /// place in each slab, so slabs hold their groups in slot order, as a serial stable
+    /// bucketing would).
     pub fn rebuild<T: Precise>(&mut self, grid: &GridSpec, p: &Soa<T>) {
         let n = p.n;
         let dims = grid.dims;
         self.key.resize(n, 0);
         let xs = [p.x(0), p.x(1), p.x(2)];
-        // Keys, the bounding box of the bases and the groups, by tasks of KEY_CHUNK particles.
+        let n_tasks = n.div_ceil(KEY_CHUNK);
+        self.task_groups.resize_with(n_tasks, Vec::new);
+        self.task_cells.resize_with(n_tasks, Vec::new);
         let isa = Isa::detect();
-        let tasks: Vec<([usize; 3], [usize; 3], Vec<Group>)> = self
+        let boxes: Vec<([usize; 3], [usize; 3])> = self
             .key
             .par_chunks_mut(KEY_CHUNK)
+            .zip(self.task_groups.par_iter_mut())
+            .zip(self.task_cells.par_iter_mut())
             .enumerate()
-            .map(|(t, keys)| {
+            .map(|(t, ((keys, groups), per_cell))| {
                 let at = t * KEY_CHUNK;
+                groups.clear();
+                per_cell.clear();
+                per_cell.resize(dims[0], 0);
                 isa.run_wide(KeyTask {
                     grid,
                     first: at,
                     x: [&xs[0][at..], &xs[1][at..], &xs[2][at..]],
                     keys,
+                    groups,
+                    per_cell,
                 })
             })
             .collect();
         let (mut lo, mut hi) = ([usize::MAX; 3], [0usize; 3]);
-        self.list.clear();
-        for (l, h, g) in &tasks {
+        for (l, h) in &boxes {
             for a in 0..3 {
                 lo[a] = lo[a].min(l[a]);
                 hi[a] = hi[a].max(h[a]);
             }
-            self.list.extend_from_slice(g);
         }
         self.touched = NodeBox {
             x: lo[0]..hi[0] + 3,
             y: lo[1]..hi[1] + 3,
             z: lo[2]..hi[2] + 3,
         };
-        // Slabs: equal-count cuts of the particles' x cells, groups bucketed stably.
+        // The tasks' groups, concatenated in slot order.
+        let total: usize = self.task_groups.iter().map(Vec::len).sum();
+        self.list.resize(total, Group::default());
+        let mut rest = self.list.as_mut_slice();
+        let mut pieces = Vec::with_capacity(n_tasks);
+        for g in &self.task_groups {
+            let (mine, tail) = rest.split_at_mut(g.len());
+            pieces.push(mine);
+            rest = tail;
+        }
+        pieces
+            .into_par_iter()
+            .zip(self.task_groups.par_iter())
+            .for_each(|(out, g)| out.copy_from_slice(g));
+        // Slabs: equal-count cuts of the particles' x cells.
         self.per_cell.clear();
         self.per_cell.resize(dims[0], 0);
-        for g in &self.list {
-            self.per_cell[g.base[0] as usize] += g.n as usize;
+        for cells in &self.task_cells {
+            for (sum, c) in self.per_cell.iter_mut().zip(cells) {
+                *sum += c;
+            }
         }
         self.first = slab_cuts(&self.per_cell, n);
         let n_slabs = self.first.len() - 1;
@@ -207,22 +269,46 @@ impl Groups {
             let w = self.first[s + 1] - self.first[s];
             self.slab_of.extend(std::iter::repeat_n(s as u32, w));
         }
+        // Each task's groups per slab, then each (slab, task)'s place in `by_slab`.
+        let slab_of = &self.slab_of;
+        let counts: Vec<Vec<usize>> = self
+            .task_groups
+            .par_iter()
+            .map(|g| {
+                let mut c = vec![0usize; n_slabs];
+                for gr in g {
+                    c[slab_of[gr.base[0] as usize] as usize] += 1;
+                }
+                c
+            })
+            .collect();
         self.start.clear();
         self.start.resize(n_slabs + 1, 0);
-        for g in &self.list {
-            self.start[self.slab_of[g.base[0] as usize] as usize + 1] += 1;
-        }
         for s in 0..n_slabs {
-            self.start[s + 1] += self.start[s];
+            self.start[s + 1] = self.start[s] + counts.iter().map(|c| c[s]).sum::<usize>();
         }
-        self.fill.clear();
-        self.fill.extend_from_slice(&self.start[..n_slabs]);
-        self.by_slab.resize(self.list.len(), Group::default());
-        for g in &self.list {
-            let s = self.slab_of[g.base[0] as usize] as usize;
-            self.by_slab[self.fill[s]] = *g;
-            self.fill[s] += 1;
+        self.by_slab.resize(total, Group::default());
+        let mut places: Vec<Vec<&mut [Group]>> =
+            (0..n_tasks).map(|_| Vec::with_capacity(n_slabs)).collect();
+        let mut rest = self.by_slab.as_mut_slice();
+        for s in 0..n_slabs {
+            for (t, c) in counts.iter().enumerate() {
+                let (mine, tail) = rest.split_at_mut(c[s]);
+                places[t].push(mine);
+                rest = tail;
+            }
         }
+        places
+            .into_par_iter()
+            .zip(self.task_groups.par_iter())
+            .for_each(|(mut out, g)| {
+                let mut fill = vec![0usize; n_slabs];
+                for gr in g {
+                    let s = slab_of[gr.base[0] as usize] as usize;
+                    out[s][fill[s]] = *gr;
+                    fill[s] += 1;
+                }
+            });
     }
 
     /// Runs `f(groups, piece, first_layer)` for every slab with a mutable view of the grid
@@ -306,4 +392,97 @@ pub fn task_cuts(tasks: &[(&[Group], usize, usize)], n: usize) -> Vec<usize> {
         .map(|t| t.1)
         .chain(std::iter::once(n))
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::DVec3;
+
+    use super::*;
+    use crate::grid::Aabb;
+
+    /// The parallel rebuild gives what a serial pass gives: runs of equal keys in slot order
+    /// cut at the lane count (and at key-task boundaries), their particles per x cell, and a
+    /// stable bucketing by slab.
+    fn check<T: Precise>() {
+        let grid = GridSpec::new(Aabb::new(DVec3::ZERO, DVec3::ONE), 1.0 / 24.0, 3).unwrap();
+        // Clustered positions over several key tasks, with runs longer than a vector, runs cut
+        // by strays and a tail shorter than a vector.
+        let n = 3 * KEY_CHUNK + 13;
+        let mut p = Soa::<T>::new(n);
+        let mut state = 12345u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut at = [0.3, 0.4, 0.5];
+        for i in 0..n {
+            if i % 11 == 0 {
+                at = [0.2 + 0.6 * next(), 0.2 + 0.6 * next(), 0.2 + 0.6 * next()];
+            }
+            let stray = next() < 0.1;
+            for (a, centre) in at.iter().enumerate() {
+                let jitter = if stray { 0.2 * next() } else { 0.01 * next() };
+                p.x[a * p.stride + i] = T::of(centre + jitter - grid.origin[a] as f64 * grid.dx);
+            }
+        }
+        let mut g = Groups::default();
+        g.rebuild(&grid, &p);
+
+        let base = |i: usize| -> [u32; 3] {
+            std::array::from_fn(|a| {
+                let f = (p.x[a * p.stride + i].f64() * grid.inv_dx - 0.5).floor();
+                f.clamp(0.0, (grid.dims[a] - 3) as f64) as u32
+            })
+        };
+        let mut want = Vec::new();
+        let mut per_cell = vec![0usize; grid.dims[0]];
+        let mut i = 0;
+        while i < n {
+            let b = base(i);
+            let cell = grid.linear(b.map(|v| v as usize)) as u32;
+            assert_eq!(g.key[i], cell, "key of particle {i}");
+            let mut j = i + 1;
+            while j < n && base(j) == b && j % KEY_CHUNK != 0 && j - i < T::N {
+                j += 1;
+            }
+            want.push(Group {
+                start: i as u32,
+                n: (j - i) as u32,
+                cell,
+                base: b,
+            });
+            per_cell[b[0] as usize] += j - i;
+            i = j;
+        }
+        assert_eq!(g.list, want);
+        assert!(want.iter().any(|x| x.n == 1) && want.iter().any(|x| x.n as usize == T::N));
+        assert_eq!(g.first, slab_cuts(&per_cell, n));
+        let slab = |gr: &Group| {
+            g.first
+                .iter()
+                .rposition(|&f| f <= gr.base[0] as usize)
+                .unwrap()
+        };
+        let mut by_slab = want.clone();
+        by_slab.sort_by_key(slab);
+        assert_eq!(g.by_slab, by_slab);
+        for s in 0..g.first.len() - 1 {
+            for gr in &g.by_slab[g.start[s]..g.start[s + 1]] {
+                assert_eq!(slab(gr), s);
+            }
+        }
+        // A second rebuild on the same buffers gives the same groups.
+        let list = g.list.clone();
+        g.rebuild(&grid, &p);
+        assert_eq!(g.list, list);
+    }
+
+    #[test]
+    fn rebuild_matches_a_serial_pass() {
+        check::<f32>();
+        check::<f64>();
+    }
 }
