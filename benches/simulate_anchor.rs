@@ -11,7 +11,9 @@
 //! `cargo bench -p pipe --bench simulate_anchor`
 //!
 //! * Ours is the median of `PIPE_BENCH_REPEATS` runs (default 3, as the anchors' medians of
-//!   3 repeats), every run's time listed too.
+//!   3 repeats), every run's time listed too; `substeps_only_ms_per_substep` is the median of
+//!   the substeps' own time (`summary.json`'s `timing_s.substeps`, without the setup and the
+//!   output), the part the anchors' timed loops correspond to.
 //! * `PIPE_BENCH_CASES=fcr_20k,nh_100k` runs some cases; `PIPE_BENCH_THREADS=2` some thread
 //!   counts; `PIPE_BENCH_PRECISION=f64` runs `pipe simulate --precision f64` (default `f32`,
 //!   the anchors' precision).
@@ -168,9 +170,16 @@ fn repeats() -> usize {
         .unwrap_or(3)
 }
 
-/// One `pipe --threads t simulate` run: the whole command's time from its `summary.json` (s),
-/// the process's wall time (s), its substeps and output particle count.
-fn run_once(case: &Case, dir: &Path, threads: usize) -> (f64, f64, u64, serde_json::Value) {
+/// One run's times (s): the whole command's and its substeps' alone (from its
+/// `summary.json`), and the process's wall time.
+struct Times {
+    wall: f64,
+    substeps: f64,
+    process: f64,
+}
+
+/// One `pipe --threads t simulate` run: its times, substeps and output particle count.
+fn run_once(case: &Case, dir: &Path, threads: usize) -> (Times, u64, serde_json::Value) {
     let out = dir.join(format!("out-{threads}"));
     let started = std::time::Instant::now();
     let status = Command::new(env!("CARGO_BIN_EXE_pipe"))
@@ -195,34 +204,50 @@ fn run_once(case: &Case, dir: &Path, threads: usize) -> (f64, f64, u64, serde_js
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("summary.json")).expect("summary.json"))
             .expect("summary.json is JSON");
-    let wall = summary["wall_time_s"].as_f64().expect("wall_time_s");
+    let times = Times {
+        wall: summary["wall_time_s"].as_f64().expect("wall_time_s"),
+        substeps: summary["timing_s"]["substeps"]
+            .as_f64()
+            .expect("timing_s.substeps"),
+        process: process_s,
+    };
     let substeps = summary["substeps_total"].as_u64().expect("substeps_total");
-    (wall, process_s, substeps, summary["particles_out"].clone())
+    (times, substeps, summary["particles_out"].clone())
 }
 
 /// Runs `pipe --threads t simulate` [`repeats`] times and prints the median time per substep
-/// (and every run's).
+/// of the whole command and of its substeps alone (and every run's).
 fn run_ours(case: &Case, dir: &Path, threads: usize) {
-    let mut runs: Vec<(f64, f64, u64, serde_json::Value)> = (0..repeats())
+    let mut runs: Vec<(Times, u64, serde_json::Value)> = (0..repeats())
         .map(|_| run_once(case, dir, threads))
         .collect();
-    let all_ms: Vec<String> = runs
-        .iter()
-        .map(|r| format!("{:.4}", r.0 * 1e3 / r.2 as f64))
-        .collect();
-    runs.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let (wall, process_s, substeps, particles_out) = runs.swap_remove(runs.len() / 2);
-    let per_substep_ms = wall * 1e3 / substeps as f64;
+    let per_substep = |r: &(Times, u64, serde_json::Value), t: f64| t * 1e3 / r.1 as f64;
+    let list = |v: Vec<f64>| {
+        v.iter()
+            .map(|x| format!("{x:.4}"))
+            .collect::<Vec<_>>()
+            .join(",")
+    };
+    let all_ms = list(runs.iter().map(|r| per_substep(r, r.0.wall)).collect());
+    let mut kernel_ms: Vec<f64> = runs.iter().map(|r| per_substep(r, r.0.substeps)).collect();
+    let all_kernel_ms = list(kernel_ms.clone());
+    kernel_ms.sort_by(f64::total_cmp);
+    let kernel_median = kernel_ms[kernel_ms.len() / 2];
+    runs.sort_by(|a, b| a.0.wall.total_cmp(&b.0.wall));
+    let (times, substeps, particles_out) = runs.swap_remove(runs.len() / 2);
+    let per_substep_ms = times.wall * 1e3 / substeps as f64;
     println!(
         "{{\"who\":\"pipe simulate\",\"case\":\"{}\",\"N\":{},\"G\":{},\"threads\":{threads},\
-         \"precision\":\"{}\",\"substeps\":{substeps},\"wall_s\":{wall:.4},\"process_s\":{process_s:.4},\
-         \"ms_per_substep\":{per_substep_ms:.4},\"runs_ms_per_substep\":[{}],\
+         \"precision\":\"{}\",\"substeps\":{substeps},\"wall_s\":{:.4},\"process_s\":{:.4},\
+         \"ms_per_substep\":{per_substep_ms:.4},\"runs_ms_per_substep\":[{all_ms}],\
+         \"substeps_only_ms_per_substep\":{kernel_median:.4},\"runs_substeps_only_ms\":[{all_kernel_ms}],\
          \"Mpart_substeps_per_s\":{:.3},\"particles_out\":{particles_out}}}",
         case.name,
         case.n,
         case.g,
         precision(),
-        all_ms.join(","),
+        times.wall,
+        times.process,
         case.n as f64 / per_substep_ms / 1e3,
     );
 }

@@ -10,6 +10,7 @@
 use std::collections::HashMap;
 
 use glam::{DVec3, IVec3};
+use rayon::prelude::*;
 
 /// Points bucketed by cell.
 #[derive(Debug, Clone)]
@@ -151,8 +152,10 @@ pub fn median_nn_distance(points: &[DVec3]) -> Option<f64> {
         h = ext.max_element().max(1e-9);
     }
     let grid = PointGrid::new(points, h);
-    let mut d: Vec<f64> = sample(points.len(), 8192)
-        .filter_map(|i| grid.nearest(points[i], Some(i)).map(|(_, d)| d))
+    let queries: Vec<usize> = sample(points.len(), 8192).collect();
+    let mut d: Vec<f64> = queries
+        .par_iter()
+        .filter_map(|&i| grid.nearest(points[i], Some(i)).map(|(_, d)| d))
         .collect();
     if d.is_empty() {
         return None;
@@ -189,19 +192,19 @@ pub fn particle_spacing(points: &[DVec3]) -> Option<Spacing> {
     for factor in [4.0, 3.0] {
         let h = factor * median_nn;
         let grid = PointGrid::new(points, h);
-        let mut count = 0usize;
-        let mut cells = 0usize;
-        for (c, idx) in grid.cells() {
-            let interior = (-1..=1).all(|dx| {
-                (-1..=1).all(|dy| {
-                    (-1..=1).all(|dz| grid.cells().contains_key(&(*c + IVec3::new(dx, dy, dz))))
+        let occupied: Vec<(&IVec3, &Vec<u32>)> = grid.cells().iter().collect();
+        let (cells, count) = occupied
+            .par_iter()
+            .filter(|(c, _)| {
+                (-1..=1).all(|dx| {
+                    (-1..=1).all(|dy| {
+                        (-1..=1)
+                            .all(|dz| grid.cells().contains_key(&(**c + IVec3::new(dx, dy, dz))))
+                    })
                 })
-            });
-            if interior {
-                cells += 1;
-                count += idx.len();
-            }
-        }
+            })
+            .map(|(_, idx)| (1usize, idx.len()))
+            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
         if cells >= 8 {
             let volume_per_particle = cells as f64 * h * h * h / count as f64;
             return Some(Spacing {

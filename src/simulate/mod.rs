@@ -34,7 +34,7 @@ use pipe_mpm::{
     StableStep, State, StepLimits, speed_bound, stable_step_at_speed,
 };
 
-pub use output::{FrameStats, Summary, Trajectories};
+pub use output::{FrameStats, Summary, Timing, Trajectories};
 pub use spec::{SimSpec, load_spec};
 
 use crate::io::ply::{self, PlyError};
@@ -301,6 +301,7 @@ pub fn run_with(
         progress,
         gaussians: gaussians.as_ref(),
         precision: options.precision,
+        started,
     };
     let done = spec.material.mpm_family().visit(job)?;
 
@@ -311,6 +312,7 @@ pub fn run_with(
     warnings.extend(done.warnings);
     let substeps_total = done.stats.iter().map(|s| s.substeps).sum();
     let held_total = done.stats.iter().map(|s| s.held).sum();
+    let wall = started.elapsed().as_secs_f64();
     let mass = spec.material.density * setup.particle_volume;
     let total_mass =
         mass * n as f64 + spec.material.density * setup.fill_volume * setup.fill.len() as f64;
@@ -355,7 +357,12 @@ pub fn run_with(
             pipe_mpm::Precision::F32 => "f32",
         }
         .to_string(),
-        wall_time_s: started.elapsed().as_secs_f64(),
+        wall_time_s: wall,
+        timing_s: Timing {
+            setup: done.setup_s,
+            substeps: done.substeps_s,
+            output: (wall - done.setup_s - done.substeps_s).max(0.0),
+        },
     };
     output::write_summary(out, &summary)?;
     Ok(summary)
@@ -408,6 +415,8 @@ struct Job<'a> {
     /// The input's 3DGS splats, written moved and deformed with every frame (`--splats`).
     gaussians: Option<&'a Gaussians>,
     precision: pipe_mpm::Precision,
+    /// When the command started.
+    started: Instant,
 }
 
 /// Most automatic substeps a frame may take (beyond it the run has diverged, or a force is far
@@ -435,6 +444,10 @@ struct Done {
     trajectories: Trajectories,
     stats: Vec<FrameStats>,
     warnings: Vec<String>,
+    /// Time from the command's start to the first substep (s).
+    setup_s: f64,
+    /// Time inside the substeps (s).
+    substeps_s: f64,
 }
 
 impl ModelVisitor for Job<'_> {
@@ -606,6 +619,8 @@ impl Job<'_> {
         }
         let mut stats = Vec::new();
         let mut warnings = Vec::new();
+        let setup_s = self.started.elapsed().as_secs_f64();
+        let mut substeps_s = 0.0;
         self.progress
             .start("simulate", u64::from(self.frames.saturating_sub(1)));
         for frame in 1..self.frames {
@@ -630,7 +645,10 @@ impl Job<'_> {
                 warnings.push(w);
             }
             let t0 = f64::from(frame - 1) * spec.frame_dt;
-            let rep = stepper.advance(t0, dt, n_sub).map_err(|source| {
+            let stepping = Instant::now();
+            let rep = stepper.advance(t0, dt, n_sub);
+            substeps_s += stepping.elapsed().as_secs_f64();
+            let rep = rep.map_err(|source| {
                 let why = if unstable {
                     " (the substep is above the stability limit: allow_unstable)"
                 } else {
@@ -683,6 +701,8 @@ impl Job<'_> {
             trajectories: traj,
             stats,
             warnings,
+            setup_s,
+            substeps_s,
         })
     }
 }

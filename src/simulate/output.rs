@@ -266,6 +266,21 @@ pub struct Summary {
     pub precision: String,
     /// Wall-clock time of the whole command (s).
     pub wall_time_s: f64,
+    /// Where the wall-clock time went (s).
+    #[serde(default)]
+    pub timing_s: Timing,
+}
+
+/// The command's wall-clock time by part (s).
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq)]
+pub struct Timing {
+    /// Reading the inputs, measuring the spacing, filling, loading and sorting the particles
+    /// in the simulator: everything before the first substep.
+    pub setup: f64,
+    /// The substeps alone (the simulator's kernels), over all frames.
+    pub substeps: f64,
+    /// Reading back each frame's state, the frame PLYs, `particles.arrow` and the summary.
+    pub output: f64,
 }
 
 impl Summary {

@@ -193,6 +193,14 @@ fn example_sim_yaml_on_a_lattice() {
     );
     assert!(s.boundaries[0].contains("sticky") && s.boundaries.last().unwrap().contains("walls"));
     assert!(s.wall_time_s > 0.0 && s.pipe_version == env!("CARGO_PKG_VERSION"));
+    // The wall time by part: setup, the substeps alone, output; they add up to the whole.
+    let t = s.timing_s;
+    assert!(t.setup > 0.0 && t.substeps > 0.0 && t.output > 0.0, "{t:?}");
+    assert!(
+        (t.setup + t.substeps + t.output - s.wall_time_s).abs() < 1e-9,
+        "{t:?} vs {}",
+        s.wall_time_s
+    );
     assert!(s.warnings.is_empty(), "{:?}", s.warnings);
     let report = s.report(&out);
     println!("{report}");
