@@ -88,6 +88,7 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
             base: [0; 3],
         };
         let mut prev = u32::MAX;
+        let mut pending = false;
         let n = keys.len();
         let inv = w.c(grid.inv_dx);
         let top: [W::V; 3] = arr!(3, |a| w.c((grid.dims[a] - 3) as f64));
@@ -150,7 +151,7 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
                 let l = starts.trailing_zeros() as usize;
                 starts &= starts - 1;
                 let at = (first + s + l) as u32;
-                push_run(groups, per_cell, run, at, T::N as u32);
+                push_run(groups, per_cell, &mut pending, run, at, T::N as u32);
                 run = Group {
                     start: at,
                     n: 0,
@@ -159,7 +160,14 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
                 };
             }
         }
-        push_run(groups, per_cell, run, (first + n) as u32, T::N as u32);
+        push_run(
+            groups,
+            per_cell,
+            &mut pending,
+            run,
+            (first + n) as u32,
+            T::N as u32,
+        );
         let box_of = |v: W::V, f: fn(f64, f64) -> f64, init: f64| {
             w.lanes(v)[..T::N]
                 .iter()
@@ -172,22 +180,47 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
     }
 }
 
-/// The groups of the run of equal keys `run.start..end`: pieces of `lanes` particles, the
-/// last one shorter; its particles counted in their x cell.
+/// The groups of the run of equal keys `run.start..end`: pieces of `lanes` particles and the
+/// rest; its particles counted in their x cell.
+///
+/// A rest of at most half a vector goes first when the group before it is a small one that
+/// [`super::transfer::pairs`] would leave alone (`pending`), so the two share a vector; else
+/// last, where the next run's rest can join it. `pending` is updated as that pairing, left to
+/// right, would leave it.
 #[inline(always)]
-fn push_run(groups: &mut Vec<Group>, per_cell: &mut [usize], run: Group, end: u32, lanes: u32) {
-    if end > run.start {
-        per_cell[run.base[0] as usize] += (end - run.start) as usize;
+fn push_run(
+    groups: &mut Vec<Group>,
+    per_cell: &mut [usize],
+    pending: &mut bool,
+    run: Group,
+    end: u32,
+    lanes: u32,
+) {
+    if end <= run.start {
+        return;
     }
+    let len = end - run.start;
+    per_cell[run.base[0] as usize] += len as usize;
+    let rest = len % lanes;
+    let rest_first = rest > 0 && 2 * rest <= lanes && *pending;
     let mut at = run.start;
-    while at < end {
-        let n = (end - at).min(lanes);
+    let mut emit = |n: u32| {
         groups.push(Group {
             start: at,
             n,
             ..run
         });
         at += n;
+        *pending = 2 * n <= lanes && !*pending;
+    };
+    if rest_first {
+        emit(rest);
+    }
+    for _ in 0..len / lanes {
+        emit(lanes);
+    }
+    if rest > 0 && !rest_first {
+        emit(rest);
     }
 }
 
@@ -437,26 +470,54 @@ mod tests {
                 f.clamp(0.0, (grid.dims[a] - 3) as f64) as u32
             })
         };
-        let mut want = Vec::new();
+        // Runs of one base, cut at key-task boundaries; each cut into vectors with the rest
+        // first when the group before it is a small one still unpaired, else last.
+        let lanes = T::N;
+        let mut want: Vec<Group> = Vec::new();
         let mut per_cell = vec![0usize; grid.dims[0]];
+        let mut pending = false;
         let mut i = 0;
         while i < n {
+            if i % KEY_CHUNK == 0 {
+                pending = false;
+            }
             let b = base(i);
             let cell = grid.linear(b.map(|v| v as usize)) as u32;
-            assert_eq!(g.key[i], cell, "key of particle {i}");
             let mut j = i + 1;
-            while j < n && base(j) == b && j % KEY_CHUNK != 0 && j - i < T::N {
+            while j < n && base(j) == b && j % KEY_CHUNK != 0 {
                 j += 1;
             }
-            want.push(Group {
-                start: i as u32,
-                n: (j - i) as u32,
-                cell,
-                base: b,
-            });
+            for k in i..j {
+                assert_eq!(g.key[k], cell, "key of particle {k}");
+            }
             per_cell[b[0] as usize] += j - i;
+            let (len, rest) = (j - i, (j - i) % lanes);
+            let mut sizes = vec![lanes; len / lanes];
+            if rest > 0 {
+                if 2 * rest <= lanes && pending {
+                    sizes.insert(0, rest);
+                } else {
+                    sizes.push(rest);
+                }
+            }
+            let mut at = i;
+            for size in sizes {
+                want.push(Group {
+                    start: at as u32,
+                    n: size as u32,
+                    cell,
+                    base: b,
+                });
+                at += size;
+                pending = 2 * size <= lanes && !pending;
+            }
             i = j;
         }
+        // Some rests went first, next to the small group they pair with.
+        assert!(
+            want.windows(3)
+                .any(|w| { w[0].cell != w[1].cell && w[1].cell == w[2].cell && w[1].n < w[2].n })
+        );
         assert_eq!(g.list, want);
         assert!(want.iter().any(|x| x.n == 1) && want.iter().any(|x| x.n as usize == T::N));
         assert_eq!(g.first, slab_cuts(&per_cell, n));

@@ -221,6 +221,88 @@ pub(crate) trait Wide: Copy + Send + Sync {
         self.reduce4_add(q[0], q[1], q[2], q[3], hi);
     }
 
+    /// Two groups of up to half a vector side by side ([`super::transfer`]'s pairs): lanes
+    /// `0..N/2` from `a[..N/2]`, lanes `N/2..N` from `b[..N/2]`.
+    #[inline(always)]
+    fn load_halves(self, a: &[Self::T], b: &[Self::T]) -> Self::V {
+        let h = Self::T::N / 2;
+        let mut v = [Self::T::default(); 8];
+        v[..h].copy_from_slice(&a[..h]);
+        v[h..2 * h].copy_from_slice(&b[..h]);
+        self.vector(v)
+    }
+
+    /// `a` in lanes `0..N/2`, `b` in lanes `N/2..N`.
+    #[inline(always)]
+    fn splat_halves(self, a: Self::T, b: Self::T) -> Self::V {
+        let h = Self::T::N / 2;
+        let mut v = [b; 8];
+        for x in &mut v[..h] {
+            *x = a;
+        }
+        self.vector(v)
+    }
+
+    /// Lanes `0..na` and `N/2..N/2 + nb` of `v`, the others 0.
+    #[inline(always)]
+    fn keep_halves(self, v: Self::V, na: usize, nb: usize) -> Self::V {
+        let h = Self::T::N / 2;
+        let iota = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0].map(Self::T::of);
+        let end = self.splat_halves(Self::T::of(na as f64), Self::T::of((h + nb) as f64));
+        self.select_gt(end, self.vector(iota), v, self.zero())
+    }
+
+    /// The lane sums `[Σa, Σb, Σc, Σd]` of each half apart: over lanes `0..N/2`, and over
+    /// lanes `N/2..N`, each in the order of that half in [`Self::reduce4`] (`(l₀+l₂)+(l₁+l₃)`
+    /// for four lanes, `l₀+l₁` for two).
+    #[inline(always)]
+    fn reduce4_halves(
+        self,
+        a: Self::V,
+        b: Self::V,
+        c: Self::V,
+        d: Self::V,
+    ) -> ([Self::T; 4], [Self::T; 4]) {
+        let h = Self::T::N / 2;
+        let sum = |v: [Self::T; 8], at: usize| {
+            if h == 4 {
+                (v[at] + v[at + 2]) + (v[at + 1] + v[at + 3])
+            } else {
+                v[at] + v[at + 1]
+            }
+        };
+        let l = [self.lanes(a), self.lanes(b), self.lanes(c), self.lanes(d)];
+        (
+            [sum(l[0], 0), sum(l[1], 0), sum(l[2], 0), sum(l[3], 0)],
+            [sum(l[0], h), sum(l[1], h), sum(l[2], h), sum(l[3], h)],
+        )
+    }
+
+    /// `out[k] += s[k]`.
+    #[inline(always)]
+    fn add4(self, s: [Self::T; 4], out: &mut [Self::T; 4]) {
+        for k in 0..4 {
+            out[k] = out[k] + s[k];
+        }
+    }
+
+    /// A pair's lanes to its slots: lanes `0..N/2` to `s[..]`, then lanes `N/2..` to
+    /// `s[na..]` (the second group follows the first). With `whole`, `N/2` lanes each (the
+    /// first store's lanes past `na` are overwritten by the second, the second's past `nb`
+    /// land on later slots, which their own groups overwrite afterwards); else `na` and `nb`.
+    #[inline(always)]
+    fn store_halves(self, v: Self::V, s: &mut [Self::T], na: usize, nb: usize, whole: bool) {
+        let h = Self::T::N / 2;
+        let l = self.lanes(v);
+        if whole {
+            s[..h].copy_from_slice(&l[..h]);
+            s[na..na + h].copy_from_slice(&l[h..2 * h]);
+        } else {
+            s[..na].copy_from_slice(&l[..na]);
+            s[na..na + nb].copy_from_slice(&l[h..h + nb]);
+        }
+    }
+
     /// 0 in every lane.
     #[inline(always)]
     fn zero(self) -> Self::V {
@@ -639,6 +721,52 @@ mod avx2 {
             let o: __m256 = pulp::cast(*out);
             *out = pulp::cast(avx._mm256_add_ps(o, avx._mm256_add_ps(lo, hi)));
         }
+        #[inline(always)]
+        fn load_halves(self, a: &[f32], b: &[f32]) -> __m256 {
+            let lo: [f32; 4] = a[..4].try_into().expect("4 lanes");
+            let hi: [f32; 4] = b[..4].try_into().expect("4 lanes");
+            self.0.avx._mm256_set_m128(pulp::cast(hi), pulp::cast(lo))
+        }
+        #[inline(always)]
+        fn splat_halves(self, a: f32, b: f32) -> __m256 {
+            let sse = self.0.sse;
+            self.0
+                .avx
+                ._mm256_set_m128(sse._mm_set1_ps(b), sse._mm_set1_ps(a))
+        }
+        #[inline(always)]
+        fn reduce4_halves(
+            self,
+            a: __m256,
+            b: __m256,
+            c: __m256,
+            d: __m256,
+        ) -> ([f32; 4], [f32; 4]) {
+            let avx = self.0.avx;
+            let h = self.halves(a, b, c, d);
+            (
+                pulp::cast(avx._mm256_castps256_ps128(h)),
+                pulp::cast(avx._mm256_extractf128_ps::<1>(h)),
+            )
+        }
+        #[inline(always)]
+        fn add4(self, s: [f32; 4], out: &mut [f32; 4]) {
+            let o: __m128 = pulp::cast(*out);
+            *out = pulp::cast(self.0.sse._mm_add_ps(o, pulp::cast(s)));
+        }
+        #[inline(always)]
+        fn store_halves(self, v: __m256, s: &mut [f32], na: usize, nb: usize, whole: bool) {
+            let avx = self.0.avx;
+            let lo: [f32; 4] = pulp::cast(avx._mm256_castps256_ps128(v));
+            let hi: [f32; 4] = pulp::cast(avx._mm256_extractf128_ps::<1>(v));
+            if whole {
+                s[..4].copy_from_slice(&lo);
+                s[na..na + 4].copy_from_slice(&hi);
+            } else {
+                s[..na].copy_from_slice(&lo[..na]);
+                s[na..na + nb].copy_from_slice(&hi[..nb]);
+            }
+        }
     }
 
     impl F32x8 {
@@ -783,6 +911,41 @@ mod avx2 {
             let o: __m256d = pulp::cast(*out);
             *out = pulp::cast(avx._mm256_add_pd(o, avx._mm256_add_pd(lo, hi)));
         }
+        #[inline(always)]
+        fn load_halves(self, a: &[f64], b: &[f64]) -> __m256d {
+            let lo: [f64; 2] = a[..2].try_into().expect("2 lanes");
+            let hi: [f64; 2] = b[..2].try_into().expect("2 lanes");
+            self.0.avx._mm256_set_m128d(pulp::cast(hi), pulp::cast(lo))
+        }
+        #[inline(always)]
+        fn splat_halves(self, a: f64, b: f64) -> __m256d {
+            let sse2 = self.0.sse2;
+            self.0
+                .avx
+                ._mm256_set_m128d(sse2._mm_set1_pd(b), sse2._mm_set1_pd(a))
+        }
+        #[inline(always)]
+        fn reduce4_halves(
+            self,
+            a: __m256d,
+            b: __m256d,
+            c: __m256d,
+            d: __m256d,
+        ) -> ([f64; 4], [f64; 4]) {
+            // [a0+a1, b0+b1, a2+a3, b2+b3] and the same for c, d.
+            let avx = self.0.avx;
+            let h1 = avx._mm256_hadd_pd(a, b);
+            let h2 = avx._mm256_hadd_pd(c, d);
+            (
+                pulp::cast(avx._mm256_permute2f128_pd::<0x20>(h1, h2)),
+                pulp::cast(avx._mm256_permute2f128_pd::<0x31>(h1, h2)),
+            )
+        }
+        #[inline(always)]
+        fn add4(self, s: [f64; 4], out: &mut [f64; 4]) {
+            let o: __m256d = pulp::cast(*out);
+            *out = pulp::cast(self.0.avx._mm256_add_pd(o, pulp::cast(s)));
+        }
     }
 }
 
@@ -820,6 +983,20 @@ mod tests {
                 let s = w.reduce4(a, b, r[0], r[1]);
                 out.extend_from_slice(&s);
                 out.push(T::of(w.ne_mask(a, w.floor(a)) as f64));
+                // The pair operations: halves loaded, splat, kept, summed and stored apart.
+                let h = T::N / 2;
+                let ab = w.load_halves(&buf[1..], &buf[h - 1..]);
+                let sp = w.splat_halves(c[0], c[c.len() - 1]);
+                let kept = w.keep_halves(w.mul(ab, sp), 1 + c.len() % h, h - 1);
+                let (sa, sb) = w.reduce4_halves(ab, sp, kept, b);
+                let mut acc = sb;
+                w.add4(sa, &mut acc);
+                out.extend_from_slice(&acc);
+                for whole in [true, false] {
+                    let mut slots = [T::of(-1.0); 16];
+                    w.store_halves(kept, &mut slots, h - 1, h, whole);
+                    out.extend_from_slice(&slots);
+                }
             }
             out
         }
