@@ -8,6 +8,10 @@
 //! * then, per particle: `v̄ = m ḡ`, `C̄ = m Ā + …`, `τ̄ = −dt V (4/dx²) Ā`,
 //!   `m̄ += v·ḡ + C:Ā + Σ w m̄_i`, `V̄ += −dt (4/dx²) Ā:τ`, and the model's adjoint with the
 //!   strain prediction's.
+//!
+//! Both transfers run small groups two to a vector as their forward kernels do
+//! ([`super::transfer`]): the G2P adjoint pairs a slab's small groups in order (it scatters
+//! like P2G), the P2G adjoint pairs neighbouring ones (it writes per slot like G2P).
 
 use glam::DMat3;
 
@@ -16,7 +20,9 @@ use super::simd::{Real, Wide, WideOp};
 use super::stress::{
     Mat, SlotMaterial, cofactor, ddot, det_with, lane_of, mul, mul_at, mul_bt, polar, predict,
 };
-use super::transfer::{Axis, gather, momentum, weights};
+use super::transfer::{
+    self, Axis, gather_unit, load_unit, pairs, splat_unit, store_unit, unit_momentum, weights,
+};
 use crate::boundary::Boundaries;
 use crate::grid::{GridSpec, NodeBox};
 use crate::grid_update::mass_threshold;
@@ -33,28 +39,6 @@ fn dweights<W: Wide>(w: W, fx: W::V) -> [W::V; 3] {
         w.mul(w.c(-2.0), w.sub(fx, w.c(1.0))),
         w.sub(fx, w.c(0.5)),
     ]
-}
-
-/// A group's positions, stencil base, weights with node offsets, and weight derivatives.
-type GroupStencil<W> = (
-    [<W as Wide>::V; 3],
-    [usize; 3],
-    [Axis<W>; 3],
-    [[<W as Wide>::V; 3]; 3],
-);
-
-/// The [`GroupStencil`] of group `g`.
-#[inline(always)]
-fn stencil<W: Wide>(w: W, grid: &GridSpec, g: &Group, x: [&[W::T]; 3]) -> GroupStencil<W> {
-    let s = g.start as usize;
-    let base = g.base.map(|b| b as usize);
-    let inv = w.c(grid.inv_dx);
-    let xv: [W::V; 3] = arr!(3, |a| w.load(&x[a][s..]));
-    let fx: [W::V; 3] = arr!(3, |a| w
-        .sub(w.mul(xv[a], inv), w.splat(W::T::of(base[a] as f64))));
-    let st: [Axis<W>; 3] = arr!(3, |a| weights(w, fx[a]));
-    let dw: [[W::V; 3]; 3] = arr!(3, |a| dweights(w, fx[a]));
-    (xv, base, st, dw)
 }
 
 /// The G2P adjoint of one slab's groups: node gradients `v̄_i` scattered into its grid piece
@@ -87,93 +71,138 @@ impl<T: Real> WideOp<T> for G2pAdjTask<'_, T> {
     type Output = ();
 
     #[inline(always)]
-    fn with<W: Wide<T = T>>(self, w: W) {
-        let G2pAdjTask {
-            grid,
-            groups,
-            x,
-            gx,
-            gv,
-            gc,
-            vgrid,
-            dt,
-            lo,
-            hi,
-            reach,
-            piece,
-            first,
-            out_x,
-        } = self;
-        let off = first * grid.layer();
+    fn with<W: Wide<T = T>>(mut self, w: W) {
+        let groups = self.groups;
+        // Small groups share a vector two by two, in the order they come (as in P2G).
+        let mut waiting: Option<usize> = None;
+        for (i, g) in groups.iter().enumerate() {
+            if 2 * g.n as usize <= T::N {
+                match waiting.take() {
+                    Some(first) => self.unit::<W, true>(w, first, i),
+                    None => waiting = Some(i),
+                }
+            } else {
+                self.unit::<W, false>(w, i, i);
+            }
+        }
+        if let Some(i) = waiting {
+            self.unit::<W, false>(w, i, i);
+        }
+    }
+}
+
+impl<T: Real> G2pAdjTask<'_, T> {
+    /// The G2P adjoint of the slab's group `ia`, or (`PAIR`) of groups `ia < ib` in the two
+    /// halves of one vector.
+    #[inline(always)]
+    fn unit<W: Wide<T = T>, const PAIR: bool>(&mut self, w: W, ia: usize, ib: usize) {
+        let (grid, x, gx, gv, gc, vgrid) =
+            (self.grid, self.x, self.gx, self.gv, self.gc, self.vgrid);
+        let (ga, gb) = (&self.groups[ia], &self.groups[ib]);
+        let off = self.first * grid.layer();
         let inv = w.c(grid.inv_dx);
         let c4 = w.c(4.0 * grid.inv_dx);
-        let dtv = w.c(dt);
-        let (lov, hiv) = (arr!(3, |a| w.splat(lo[a])), arr!(3, |a| w.splat(hi[a])));
+        let dtv = w.c(self.dt);
+        let (lov, hiv) = (
+            arr!(3, |a| w.splat(self.lo[a])),
+            arr!(3, |a| w.splat(self.hi[a])),
+        );
         let zero = w.zero();
-        for (g, out) in groups.iter().zip(out_x.iter_mut()) {
-            let s = g.start as usize;
-            let n = g.n as usize;
-            let (xv, base, st, dw) = stencil(w, grid, g, x);
-            // Which components were held at the walls (x̄' stops there): only near a wall.
-            let mut margin = w.c(f64::MAX);
-            for a in 0..3 {
-                margin = w.min(margin, w.min(w.sub(xv[a], lov[a]), w.sub(hiv[a], xv[a])));
-            }
-            let near = w.lanes(margin)[..n]
-                .iter()
-                .any(|&m| m.partial_cmp(&reach) != Some(std::cmp::Ordering::Greater));
-            let gxp: [W::V; 3] = arr!(3, |a| w.load(&gx[a][s..]));
-            let gxm: [W::V; 3] = if near {
-                let (vel, _) = gather(w, grid, vgrid, base, &st);
-                arr!(3, |a| {
-                    let xn = w.fma(dtv, vel[a], xv[a]);
-                    let held = w.min(w.max(xn, lov[a]), hiv[a]);
-                    let free = !w.ne_mask(held, xn);
-                    let m = arr!(8, |l| T::of(f64::from(u8::from(free & (1 << l) != 0))));
-                    w.mul(gxp[a], w.vector(m))
-                })
+        let (sa, sb) = (ga.start as usize, gb.start as usize);
+        let (na, nb) = (ga.n as usize, gb.n as usize);
+        let h = T::N / 2;
+        let (xv, base_a, base_b, st, dw) = stencil_with_derivatives::<W, PAIR>(w, grid, ga, gb, x);
+        // Which components were held at the walls (x̄' stops there): only near a wall.
+        let mut margin = w.c(f64::MAX);
+        for a in 0..3 {
+            margin = w.min(margin, w.min(w.sub(xv[a], lov[a]), w.sub(hiv[a], xv[a])));
+        }
+        let margins = w.lanes(margin);
+        let reach = self.reach;
+        let close = |m: &T| m.partial_cmp(&reach) != Some(std::cmp::Ordering::Greater);
+        let near = if PAIR {
+            margins[..na].iter().any(close) || margins[h..h + nb].iter().any(close)
+        } else {
+            margins[..na].iter().any(close)
+        };
+        let gxp: [W::V; 3] = arr!(3, |a| load_unit::<W, PAIR>(w, gx[a], sa, sb));
+        let gxm: [W::V; 3] = if near {
+            let (vel, _) = gather_unit::<W, PAIR>(w, grid, vgrid, base_a, base_b, &st);
+            arr!(3, |a| {
+                let xn = w.fma(dtv, vel[a], xv[a]);
+                let held = w.min(w.max(xn, lov[a]), hiv[a]);
+                let free = !w.ne_mask(held, xn);
+                let m = arr!(8, |l| T::of(f64::from(u8::from(free & (1 << l) != 0))));
+                w.mul(gxp[a], w.vector(m))
+            })
+        } else {
+            gxp
+        };
+        let vbar: [W::V; 3] = arr!(3, |r| w.fma(
+            dtv,
+            gxm[r],
+            load_unit::<W, PAIR>(w, gv[r], sa, sb)
+        ));
+        let gm: Mat<W> = arr!(9, |k| w.mul(c4, load_unit::<W, PAIR>(w, gc[k], sa, sb)));
+        let (e0, e1, e2) = (st[0].1, st[1].1, st[2].1);
+        let (w0, w1, w2) = (st[0].0, st[1].0, st[2].0);
+        // Lanes past the group(s) scatter nothing.
+        let w0m: [W::V; 3] = arr!(3, |i| {
+            if PAIR {
+                w.keep_halves(w0[i], na, nb)
             } else {
-                gxp
-            };
-            let vbar: [W::V; 3] = arr!(3, |r| w.fma(dtv, gxm[r], w.load(&gv[r][s..])));
-            let gm: Mat<W> = arr!(9, |k| w.mul(c4, w.load(&gc[k][s..])));
-            let (e0, e1, e2) = (st[0].1, st[1].1, st[2].1);
-            let (w0, w1, w2) = (st[0].0, st[1].0, st[2].0);
-            // Lanes past the group scatter nothing.
-            let w0m: [W::V; 3] = arr!(3, |i| w.keep_first(w0[i], n));
-            // y = v̄ + G (e0_a, e1_b, e2_c): the z part per node, the x part per layer.
-            let yz: [[W::V; 3]; 3] = arr!(3, |k| arr!(3, |r| w.mul(gm[3 * r + 2], e2[k])));
-            let wyz: [[W::V; 3]; 3] = arr!(3, |k| arr!(3, |r| w.mul(w2[k], yz[k][r])));
-            let (mut px, mut py, mut pz) = (zero, zero, zero);
-            let mut vsum = [zero; 3];
-            for i in 0..3 {
-                let yx: [W::V; 3] = arr!(3, |r| w.fma(gm[3 * r], e0[i], vbar[r]));
-                for j in 0..3 {
-                    let yab: [W::V; 3] = arr!(3, |r| w.fma(gm[3 * r + 1], e1[j], yx[r]));
-                    let wab = w.mul(w0m[i], w1[j]);
-                    let row = grid.linear([base[0] + i, base[1] + j, base[2]]);
-                    let vn = &vgrid[4 * row..4 * row + 12];
-                    let (mut s_w, mut s_dw) = (zero, zero);
-                    let mut sv = [zero; 3];
-                    let mut contrib = [[zero; 4]; 3];
-                    for k in 0..3 {
-                        let v: [W::V; 3] = arr!(3, |r| w.splat(vn[4 * k + r]));
-                        let y: [W::V; 3] = arr!(3, |r| w.add(yab[r], yz[k][r]));
-                        // w y = wab (w2 yab + w2 yz).
-                        contrib[k] = [
-                            w.mul(wab, w.fma(w2[k], yab[0], wyz[k][0])),
-                            w.mul(wab, w.fma(w2[k], yab[1], wyz[k][1])),
-                            w.mul(wab, w.fma(w2[k], yab[2], wyz[k][2])),
-                            zero,
-                        ];
-                        let dot = w.fma(v[2], y[2], w.fma(v[1], y[1], w.mul(v[0], y[0])));
-                        s_w = w.fma(w2[k], dot, s_w);
-                        s_dw = w.fma(dw[2][k], dot, s_dw);
-                        for r in 0..3 {
-                            sv[r] = w.fma(w2[k], v[r], sv[r]);
-                        }
+                w.keep_first(w0[i], na)
+            }
+        });
+        // y = v̄ + G (e0_a, e1_b, e2_c): the z part per node, the x part per layer.
+        let yz: [[W::V; 3]; 3] = arr!(3, |k| arr!(3, |r| w.mul(gm[3 * r + 2], e2[k])));
+        let wyz: [[W::V; 3]; 3] = arr!(3, |k| arr!(3, |r| w.mul(w2[k], yz[k][r])));
+        let (mut px, mut py, mut pz) = (zero, zero, zero);
+        let mut vsum = [zero; 3];
+        let piece = &mut *self.piece;
+        for i in 0..3 {
+            let yx: [W::V; 3] = arr!(3, |r| w.fma(gm[3 * r], e0[i], vbar[r]));
+            for j in 0..3 {
+                let yab: [W::V; 3] = arr!(3, |r| w.fma(gm[3 * r + 1], e1[j], yx[r]));
+                let wab = w.mul(w0m[i], w1[j]);
+                let row_a = grid.linear([base_a[0] + i, base_a[1] + j, base_a[2]]);
+                let row_b = grid.linear([base_b[0] + i, base_b[1] + j, base_b[2]]);
+                let (vn_a, vn_b) = (
+                    &vgrid[4 * row_a..4 * row_a + 12],
+                    &vgrid[4 * row_b..4 * row_b + 12],
+                );
+                let (mut s_w, mut s_dw) = (zero, zero);
+                let mut sv = [zero; 3];
+                let mut contrib = [[zero; 4]; 3];
+                for k in 0..3 {
+                    let v: [W::V; 3] = arr!(3, |r| splat_unit::<W, PAIR>(
+                        w,
+                        vn_a[4 * k + r],
+                        vn_b[4 * k + r]
+                    ));
+                    let y: [W::V; 3] = arr!(3, |r| w.add(yab[r], yz[k][r]));
+                    // w y = wab (w2 yab + w2 yz).
+                    contrib[k] = [
+                        w.mul(wab, w.fma(w2[k], yab[0], wyz[k][0])),
+                        w.mul(wab, w.fma(w2[k], yab[1], wyz[k][1])),
+                        w.mul(wab, w.fma(w2[k], yab[2], wyz[k][2])),
+                        zero,
+                    ];
+                    let dot = w.fma(v[2], y[2], w.fma(v[1], y[1], w.mul(v[0], y[0])));
+                    s_w = w.fma(w2[k], dot, s_w);
+                    s_dw = w.fma(dw[2][k], dot, s_dw);
+                    for r in 0..3 {
+                        sv[r] = w.fma(w2[k], v[r], sv[r]);
                     }
-                    let local = row - off;
+                }
+                if PAIR {
+                    for (k, [c0, c1, c2, c3]) in contrib.into_iter().enumerate() {
+                        let (sum_a, sum_b) = w.reduce4_halves(c0, c1, c2, c3);
+                        w.add4(sum_a, &mut piece[row_a - off + k]);
+                        w.add4(sum_b, &mut piece[row_b - off + k]);
+                    }
+                } else {
+                    let local = row_a - off;
                     let (pair, last) = piece[local..local + 3].split_at_mut(2);
                     let pair: &mut [T; 8] = bytemuck::cast_slice_mut::<[T; 4], T>(pair)
                         .try_into()
@@ -181,27 +210,57 @@ impl<T: Real> WideOp<T> for G2pAdjTask<'_, T> {
                     w.reduce4_add_pair(contrib[0], contrib[1], pair);
                     let c2 = contrib[2];
                     w.reduce4_add(c2[0], c2[1], c2[2], c2[3], &mut last[0]);
-                    px = w.fma(w.mul(dw[0][i], w1[j]), s_w, px);
-                    py = w.fma(w.mul(w0[i], dw[1][j]), s_w, py);
-                    let w01 = w.mul(w0[i], w1[j]);
-                    pz = w.fma(w01, s_dw, pz);
-                    for r in 0..3 {
-                        vsum[r] = w.fma(w01, sv[r], vsum[r]);
-                    }
+                }
+                px = w.fma(w.mul(dw[0][i], w1[j]), s_w, px);
+                py = w.fma(w.mul(w0[i], dw[1][j]), s_w, py);
+                let w01 = w.mul(w0[i], w1[j]);
+                pz = w.fma(w01, s_dw, pz);
+                for r in 0..3 {
+                    vsum[r] = w.fma(w01, sv[r], vsum[r]);
                 }
             }
-            // x̄ = x̄'(free) + (1/dx) Σ ∇w (v·y) − (1/dx) Gᵀ v'.
-            let p = [px, py, pz];
-            for d in 0..3 {
-                let gtv = w.fma(
-                    gm[6 + d],
-                    vsum[2],
-                    w.fma(gm[3 + d], vsum[1], w.mul(gm[d], vsum[0])),
-                );
-                out[d] = w.lanes(w.add(gxm[d], w.mul(inv, w.sub(p[d], gtv))));
+        }
+        // x̄ = x̄'(free) + (1/dx) Σ ∇w (v·y) − (1/dx) Gᵀ v'.
+        let p = [px, py, pz];
+        let (head, tail) = self.out_x.split_at_mut(ib);
+        for d in 0..3 {
+            let gtv = w.fma(
+                gm[6 + d],
+                vsum[2],
+                w.fma(gm[3 + d], vsum[1], w.mul(gm[d], vsum[0])),
+            );
+            let lanes = w.lanes(w.add(gxm[d], w.mul(inv, w.sub(p[d], gtv))));
+            if PAIR {
+                head[ia][d] = lanes;
+                tail[0][d][..h].copy_from_slice(&lanes[h..2 * h]);
+            } else {
+                tail[0][d] = lanes;
             }
         }
     }
+}
+
+/// A unit's positions, stencil bases, weights with node offsets and weight derivatives
+/// ([`transfer::unit_stencil`]).
+#[inline(always)]
+#[allow(clippy::type_complexity)]
+fn stencil_with_derivatives<W: Wide, const PAIR: bool>(
+    w: W,
+    grid: &GridSpec,
+    ga: &Group,
+    gb: &Group,
+    x: [&[W::T]; 3],
+) -> (
+    [W::V; 3],
+    [usize; 3],
+    [usize; 3],
+    [Axis<W>; 3],
+    [[W::V; 3]; 3],
+) {
+    let (xv, base_a, base_b, fx) = transfer::unit_stencil::<W, PAIR>(w, grid, ga, gb, x);
+    let st: [Axis<W>; 3] = arr!(3, |a| weights(w, fx[a]));
+    let dw: [[W::V; 3]; 3] = arr!(3, |a| dweights(w, fx[a]));
+    (xv, base_a, base_b, st, dw)
 }
 
 /// Node gradients `(m̄v, m̄)` (`[m̄v, m̄]` per node) from `v̄` (`[v̄, 0]`), for the nodes of
@@ -290,109 +349,139 @@ impl<T: Real> WideOp<T> for P2gAdjTask<'_, T> {
     type Output = ();
 
     #[inline(always)]
-    fn with<W: Wide<T = T>>(self, w: W) {
-        let P2gAdjTask {
-            grid,
-            groups,
-            s0,
-            x,
-            v,
-            a,
-            mass,
-            uniform_mass,
-            extra,
-            gnodes,
-            out,
-        } = self;
-        let P2gAdjOut { gx, sg, abar, sm } = out;
+    fn with<W: Wide<T = T>>(mut self, w: W) {
+        let groups = self.groups;
+        let mut i = 0;
+        while i < groups.len() {
+            let g = &groups[i];
+            if pairs(g, groups.get(i + 1), T::N) {
+                self.unit::<W, true>(w, g, &groups[i + 1], i + 2 == groups.len());
+                i += 2;
+            } else {
+                self.unit::<W, false>(w, g, g, i + 1 == groups.len());
+                i += 1;
+            }
+        }
+    }
+}
+
+impl<T: Real> P2gAdjTask<'_, T> {
+    /// The P2G adjoint of group `ga`, or (`PAIR`) of `ga` and the group `gb` right after it
+    /// in the two halves of one vector; `last` when no group of the task follows.
+    #[inline(always)]
+    fn unit<W: Wide<T = T>, const PAIR: bool>(&mut self, w: W, ga: &Group, gb: &Group, last: bool) {
+        let (grid, x, v, a, gnodes) = (self.grid, self.x, self.v, self.a, self.gnodes);
         let dx = w.c(grid.dx);
         let inv = w.c(grid.inv_dx);
         let zero = w.zero();
-        let last = groups.len().saturating_sub(1);
-        for (gi, g) in groups.iter().enumerate() {
-            let s = g.start as usize;
-            let o = s - s0;
-            let n = g.n as usize;
-            let (_, base, st, dw) = stencil(w, grid, g, x);
-            let am: Mat<W> = arr!(9, |k| w.load(&a[k][s..]));
-            let (m, mom) = momentum(w, mass, uniform_mass, v, extra, s);
-            let (e0, e1, e2) = (st[0].1, st[1].1, st[2].1);
-            let (w0, w1, w2) = (st[0].0, st[1].0, st[2].0);
-            // A d = dx (A₀ e0 + A₁ e1 + A₂ e2); the z column per node.
-            let ax: [W::V; 3] = arr!(3, |r| w.mul(dx, am[3 * r]));
-            let ay: [W::V; 3] = arr!(3, |r| w.mul(dx, am[3 * r + 1]));
-            let az: [W::V; 3] = arr!(3, |r| w.mul(dx, am[3 * r + 2]));
-            let we2: [W::V; 3] = arr!(3, |k| w.mul(w2[k], e2[k]));
-            let (mut px, mut py, mut pz) = (zero, zero, zero);
-            let mut sgv = [zero; 3];
-            let mut smv = zero;
-            let mut ab = [zero; 9];
-            for i in 0..3 {
-                let qa: [W::V; 3] = arr!(3, |r| w.fma(ax[r], e0[i], mom[r]));
-                let mut u = [zero; 3];
-                for j in 0..3 {
-                    let q: [W::V; 3] = arr!(3, |r| w.fma(ay[r], e1[j], qa[r]));
-                    let row = grid.linear([base[0] + i, base[1] + j, base[2]]);
-                    let gn = &gnodes[4 * row..4 * row + 12];
-                    let (mut sr, mut se) = ([zero; 3], [zero; 3]);
-                    let (mut smr, mut s_w, mut s_dw) = (zero, zero, zero);
-                    for k in 0..3 {
-                        let gmv: [W::V; 3] = arr!(3, |r| w.splat(gn[4 * k + r]));
-                        let gmm = w.splat(gn[4 * k + 3]);
-                        for r in 0..3 {
-                            sr[r] = w.fma(w2[k], gmv[r], sr[r]);
-                            se[r] = w.fma(we2[k], gmv[r], se[r]);
-                        }
-                        smr = w.fma(w2[k], gmm, smr);
-                        // t = m̄v·(mom + A d) + m m̄.
-                        let dq = w.fma(gmv[2], q[2], w.fma(gmv[1], q[1], w.mul(gmv[0], q[0])));
-                        let da = w.fma(gmv[2], az[2], w.fma(gmv[1], az[1], w.mul(gmv[0], az[0])));
-                        let t = w.fma(m, gmm, w.fma(da, e2[k], dq));
-                        s_w = w.fma(w2[k], t, s_w);
-                        s_dw = w.fma(dw[2][k], t, s_dw);
-                    }
-                    let w01 = w.mul(w0[i], w1[j]);
-                    px = w.fma(w.mul(dw[0][i], w1[j]), s_w, px);
-                    py = w.fma(w.mul(w0[i], dw[1][j]), s_w, py);
-                    pz = w.fma(w01, s_dw, pz);
-                    smv = w.fma(w01, smr, smv);
-                    let w0e1 = w.mul(w01, e1[j]);
+        let (sa, sb) = (ga.start as usize, gb.start as usize);
+        let (na, nb) = (ga.n as usize, gb.n as usize);
+        let h = T::N / 2;
+        let o = sa - self.s0;
+        let (_, base_a, base_b, st, dw) = stencil_with_derivatives::<W, PAIR>(w, grid, ga, gb, x);
+        let am: Mat<W> = arr!(9, |k| load_unit::<W, PAIR>(w, a[k], sa, sb));
+        let (m, mom) =
+            unit_momentum::<W, PAIR>(w, self.mass, self.uniform_mass, v, self.extra, sa, sb);
+        let (e0, e1, e2) = (st[0].1, st[1].1, st[2].1);
+        let (w0, w1, w2) = (st[0].0, st[1].0, st[2].0);
+        // A d = dx (A₀ e0 + A₁ e1 + A₂ e2); the z column per node.
+        let ax: [W::V; 3] = arr!(3, |r| w.mul(dx, am[3 * r]));
+        let ay: [W::V; 3] = arr!(3, |r| w.mul(dx, am[3 * r + 1]));
+        let az: [W::V; 3] = arr!(3, |r| w.mul(dx, am[3 * r + 2]));
+        let we2: [W::V; 3] = arr!(3, |k| w.mul(w2[k], e2[k]));
+        let (mut px, mut py, mut pz) = (zero, zero, zero);
+        let mut sgv = [zero; 3];
+        let mut smv = zero;
+        let mut ab = [zero; 9];
+        for i in 0..3 {
+            let qa: [W::V; 3] = arr!(3, |r| w.fma(ax[r], e0[i], mom[r]));
+            let mut u = [zero; 3];
+            for j in 0..3 {
+                let q: [W::V; 3] = arr!(3, |r| w.fma(ay[r], e1[j], qa[r]));
+                let row_a = grid.linear([base_a[0] + i, base_a[1] + j, base_a[2]]);
+                let row_b = grid.linear([base_b[0] + i, base_b[1] + j, base_b[2]]);
+                let gn_a = &gnodes[4 * row_a..4 * row_a + 12];
+                let gn_b = &gnodes[4 * row_b..4 * row_b + 12];
+                let (mut sr, mut se) = ([zero; 3], [zero; 3]);
+                let (mut smr, mut s_w, mut s_dw) = (zero, zero, zero);
+                for k in 0..3 {
+                    let gmv: [W::V; 3] = arr!(3, |r| splat_unit::<W, PAIR>(
+                        w,
+                        gn_a[4 * k + r],
+                        gn_b[4 * k + r]
+                    ));
+                    let gmm = splat_unit::<W, PAIR>(w, gn_a[4 * k + 3], gn_b[4 * k + 3]);
                     for r in 0..3 {
-                        u[r] = w.fma(w1[j], sr[r], u[r]);
-                        ab[3 * r + 1] = w.fma(w0e1, sr[r], ab[3 * r + 1]);
-                        ab[3 * r + 2] = w.fma(w01, se[r], ab[3 * r + 2]);
+                        sr[r] = w.fma(w2[k], gmv[r], sr[r]);
+                        se[r] = w.fma(we2[k], gmv[r], se[r]);
                     }
+                    smr = w.fma(w2[k], gmm, smr);
+                    // t = m̄v·(mom + A d) + m m̄.
+                    let dq = w.fma(gmv[2], q[2], w.fma(gmv[1], q[1], w.mul(gmv[0], q[0])));
+                    let da = w.fma(gmv[2], az[2], w.fma(gmv[1], az[1], w.mul(gmv[0], az[0])));
+                    let t = w.fma(m, gmm, w.fma(da, e2[k], dq));
+                    s_w = w.fma(w2[k], t, s_w);
+                    s_dw = w.fma(dw[2][k], t, s_dw);
                 }
-                let w0e0 = w.mul(w0[i], e0[i]);
+                let w01 = w.mul(w0[i], w1[j]);
+                px = w.fma(w.mul(dw[0][i], w1[j]), s_w, px);
+                py = w.fma(w.mul(w0[i], dw[1][j]), s_w, py);
+                pz = w.fma(w01, s_dw, pz);
+                smv = w.fma(w01, smr, smv);
+                let w0e1 = w.mul(w01, e1[j]);
                 for r in 0..3 {
-                    sgv[r] = w.fma(w0[i], u[r], sgv[r]);
-                    ab[3 * r] = w.fma(w0e0, u[r], ab[3 * r]);
+                    u[r] = w.fma(w1[j], sr[r], u[r]);
+                    ab[3 * r + 1] = w.fma(w0e1, sr[r], ab[3 * r + 1]);
+                    ab[3 * r + 2] = w.fma(w01, se[r], ab[3 * r + 2]);
                 }
             }
-            let lanes = if gi == last {
-                n
-            } else {
-                T::N.min(sm.len() - o)
-            };
-            // Ā = dx Σ w m̄v eᵀ; x̄ += (1/dx)(Px, Py, Pz) − Aᵀ ḡ.
-            for k in 0..9 {
-                w.store_n(w.mul(dx, ab[k]), &mut abar[k][o..], lanes);
+            let w0e0 = w.mul(w0[i], e0[i]);
+            for r in 0..3 {
+                sgv[r] = w.fma(w0[i], u[r], sgv[r]);
+                ab[3 * r] = w.fma(w0e0, u[r], ab[3 * r]);
             }
-            let p = [px, py, pz];
-            for d in 0..3 {
-                let atg = w.fma(
-                    am[6 + d],
-                    sgv[2],
-                    w.fma(am[3 + d], sgv[1], w.mul(am[d], sgv[0])),
-                );
-                let add = w.sub(w.mul(inv, p[d]), atg);
-                // x̄ is read back here, so exactly this group's lanes are written.
-                let cur = w.load_part(&gx[d][o..]);
-                w.store_n(w.add(cur, add), &mut gx[d][o..], n);
-                w.store_n(sgv[d], &mut sg[d][o..], lanes);
-            }
-            w.store_n(smv, &mut sm[o..], lanes);
         }
+        let out = &mut self.out;
+        let room = out.sm.len() - o;
+        // Whole-vector stores spill into the next groups' slots, which those groups overwrite
+        // afterwards; a task's last unit stores exactly its lanes.
+        let (lanes, whole) = if PAIR {
+            (0, !last && room >= na + h)
+        } else if last {
+            (na, false)
+        } else {
+            (T::N.min(room), false)
+        };
+        let how = (na, nb, lanes, whole);
+        // Ā = dx Σ w m̄v eᵀ; x̄ += (1/dx)(Px, Py, Pz) − Aᵀ ḡ.
+        for (abk, out_k) in ab.iter().zip(out.abar.iter_mut()) {
+            store_unit::<W, PAIR>(w, w.mul(dx, *abk), &mut out_k[o..], how);
+        }
+        let p = [px, py, pz];
+        for d in 0..3 {
+            let atg = w.fma(
+                am[6 + d],
+                sgv[2],
+                w.fma(am[3 + d], sgv[1], w.mul(am[d], sgv[0])),
+            );
+            let add = w.sub(w.mul(inv, p[d]), atg);
+            // x̄ is read back here, so exactly the unit's lanes are written.
+            if PAIR {
+                let add = w.lanes(add);
+                let gx = &mut out.gx[d][o..];
+                for l in 0..na {
+                    gx[l] = gx[l] + add[l];
+                }
+                for l in 0..nb {
+                    gx[na + l] = gx[na + l] + add[h + l];
+                }
+            } else {
+                let cur = w.load_part(&out.gx[d][o..]);
+                w.store_n(w.add(cur, add), &mut out.gx[d][o..], na);
+            }
+            store_unit::<W, PAIR>(w, sgv[d], &mut out.sg[d][o..], how);
+        }
+        store_unit::<W, PAIR>(w, smv, &mut out.sm[o..], how);
     }
 }
 

@@ -51,7 +51,7 @@ pub(crate) fn load_unit<W: Wide, const PAIR: bool>(w: W, f: &[W::T], sa: usize, 
 
 /// `a` in every lane, or (`PAIR`) `a` in the first half and `b` in the second.
 #[inline(always)]
-fn splat_unit<W: Wide, const PAIR: bool>(w: W, a: W::T, b: W::T) -> W::V {
+pub(crate) fn splat_unit<W: Wide, const PAIR: bool>(w: W, a: W::T, b: W::T) -> W::V {
     if PAIR {
         w.splat_halves(a, b)
     } else {
@@ -66,43 +66,32 @@ pub(crate) fn pairs(a: &Group, b: Option<&Group>, lanes: usize) -> bool {
     b.is_some_and(|b| 2 * a.n as usize <= lanes && 2 * b.n as usize <= lanes)
 }
 
-/// The stencil bases of a unit's groups and each lane's `fx` on the three axes (the second
-/// group's lanes in the second half when `PAIR`).
+/// A unit's positions (lanes), the stencil bases of its groups and each lane's `fx` on the
+/// three axes (the second group's lanes in the second half when `PAIR`).
 #[inline(always)]
-fn unit_stencil<W: Wide, const PAIR: bool>(
+#[allow(clippy::type_complexity)]
+pub(crate) fn unit_stencil<W: Wide, const PAIR: bool>(
     w: W,
     grid: &GridSpec,
     ga: &Group,
     gb: &Group,
     x: [&[W::T]; 3],
-) -> ([usize; 3], [usize; 3], [W::V; 3]) {
+) -> ([W::V; 3], [usize; 3], [usize; 3], [W::V; 3]) {
     let (base_a, base_b) = (ga.base.map(|b| b as usize), gb.base.map(|b| b as usize));
     let (sa, sb) = (ga.start as usize, gb.start as usize);
     let inv = w.c(grid.inv_dx);
+    let xv: [W::V; 3] = arr!(3, |a| load_unit::<W, PAIR>(w, x[a], sa, sb));
     let fx = arr!(3, |a| {
         let base = splat_unit::<W, PAIR>(w, W::T::of(base_a[a] as f64), W::T::of(base_b[a] as f64));
-        w.sub(w.mul(load_unit::<W, PAIR>(w, x[a], sa, sb), inv), base)
+        w.sub(w.mul(xv[a], inv), base)
     });
-    (base_a, base_b, fx)
+    (xv, base_a, base_b, fx)
 }
 
-/// The mass and momentum `m v (+ f_ext dt)` of the particles from slot `s` (lanes); `mass`
-/// holds one value for all when `uniform`.
+/// The mass and momentum `m v (+ f_ext dt)` of a unit's lanes: one group from slot `sa`, or
+/// (`PAIR`) two from `sa` and `sb`; `mass` holds one value for all when `uniform`.
 #[inline(always)]
-pub(crate) fn momentum<W: Wide>(
-    w: W,
-    mass: &[W::T],
-    uniform: bool,
-    v: [&[W::T]; 3],
-    extra: Option<[&[W::T]; 3]>,
-    s: usize,
-) -> (W::V, [W::V; 3]) {
-    unit_momentum::<W, false>(w, mass, uniform, v, extra, s, s)
-}
-
-/// [`momentum`] of a unit: one group from slot `sa`, or (`PAIR`) two from `sa` and `sb`.
-#[inline(always)]
-fn unit_momentum<W: Wide, const PAIR: bool>(
+pub(crate) fn unit_momentum<W: Wide, const PAIR: bool>(
     w: W,
     mass: &[W::T],
     uniform: bool,
@@ -178,7 +167,7 @@ impl<T: Real> P2gTask<'_, T> {
         let dx = w.c(grid.dx);
         let off = self.first * grid.layer();
         let (sa, sb) = (ga.start as usize, gb.start as usize);
-        let (base_a, base_b, fx) = unit_stencil::<W, PAIR>(w, grid, ga, gb, x);
+        let (_, base_a, base_b, fx) = unit_stencil::<W, PAIR>(w, grid, ga, gb, x);
         let st: [Axis<W>; 3] = arr!(3, |ax| weights(w, fx[ax]));
         // Lanes past the group(s) weigh nothing.
         let wx: [W::V; 3] = arr!(3, |i| {
@@ -236,24 +225,13 @@ impl<T: Real> P2gTask<'_, T> {
     }
 }
 
-/// `v_p = Σ w v_i` and `Σ w v_i (a − fx)ᵀ` (cells; `C_p` is `4/dx` times it) of a group's
+/// `v_p = Σ w v_i` and `Σ w v_i (a − fx)ᵀ` (cells; `C_p` is `4/dx` times it) of a unit's
 /// lanes from node velocities `[vx, vy, vz, 0]` (`vgrid`), along the separable stencil: per
 /// row `(i, j)`, `Σ_k wz_k v_k` and `Σ_k wz_k (k − fz) v_k`, then the sums over `j` and `i`.
+/// One group at stencil base `base_a`, or (`PAIR`) two, the second's lanes (second half) at
+/// `base_b`.
 #[inline(always)]
-pub(crate) fn gather<W: Wide>(
-    w: W,
-    grid: &GridSpec,
-    vgrid: &[W::T],
-    base: [usize; 3],
-    st: &[Axis<W>; 3],
-) -> ([W::V; 3], [[W::V; 3]; 3]) {
-    gather_unit::<W, false>(w, grid, vgrid, base, base, st)
-}
-
-/// [`gather`] of a unit: one group at stencil base `base_a`, or (`PAIR`) two, the second's
-/// lanes (second half) at `base_b`.
-#[inline(always)]
-fn gather_unit<W: Wide, const PAIR: bool>(
+pub(crate) fn gather_unit<W: Wide, const PAIR: bool>(
     w: W,
     grid: &GridSpec,
     vgrid: &[W::T],
@@ -429,7 +407,7 @@ impl<T: Real> G2pTask<'_, T> {
 /// Stores a unit's lanes to its slots `s[..]`: one group's first `lanes`, or (`PAIR`) a
 /// pair's halves ([`Wide::store_halves`]); `how` = `(na, nb, lanes, whole)`.
 #[inline(always)]
-fn store_unit<W: Wide, const PAIR: bool>(
+pub(crate) fn store_unit<W: Wide, const PAIR: bool>(
     w: W,
     v: W::V,
     s: &mut [W::T],
