@@ -2,29 +2,34 @@
 //! Chamfer distance between two clouds.
 //!
 //! Points are bucketed into cubic cells of side `h` (a `HashMap` from integer cell to point
-//! indices). A query walks shells of cells at growing Chebyshev distance `r` from its own cell
+//! indices, hashed with `foldhash`'s fixed-seed hasher: std's SipHash took most of a query). A query walks shells of cells at growing Chebyshev distance `r` from its own cell
 //! and stops once the best distance found is at most `r·h` (no point in a farther shell can be
 //! closer); when a shell would hold more cells than the grid has occupied cells it scans the
 //! occupied cells directly, so a far query costs O(occupied cells), never more.
 
 use std::collections::HashMap;
 
+use foldhash::fast::FixedState;
+
 use glam::{DVec3, IVec3};
 use rayon::prelude::*;
+
+/// Integer cell → indices of the points in it.
+pub type CellMap = HashMap<IVec3, Vec<u32>, FixedState>;
 
 /// Points bucketed by cell.
 #[derive(Debug, Clone)]
 pub struct PointGrid<'a> {
     points: &'a [DVec3],
     h: f64,
-    cells: HashMap<IVec3, Vec<u32>>,
+    cells: CellMap,
 }
 
 impl<'a> PointGrid<'a> {
     /// Buckets `points` (m) into cells of side `h` (m, > 0).
     pub fn new(points: &'a [DVec3], h: f64) -> Self {
         assert!(h.is_finite() && h > 0.0, "cell size must be > 0, got {h}");
-        let mut cells: HashMap<IVec3, Vec<u32>> = HashMap::new();
+        let mut cells = CellMap::default();
         for (i, &p) in points.iter().enumerate() {
             cells.entry(cell_of(p, h)).or_default().push(i as u32);
         }
@@ -37,7 +42,7 @@ impl<'a> PointGrid<'a> {
     }
 
     /// Occupied cells and the indices of their points.
-    pub fn cells(&self) -> &HashMap<IVec3, Vec<u32>> {
+    pub fn cells(&self) -> &CellMap {
         &self.cells
     }
 
