@@ -315,8 +315,6 @@ impl<T: Real> WideOp<T> for G2pTask<'_, T> {
         // v or x (C follows from the same node velocities). Lanes past a group hold other
         // particles' finite values.
         let mut nan_probe = w.zero();
-        static P: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-        let use_pairs = *P.get_or_init(|| std::env::var("G2P_PAIRS").is_ok());
         let bounds = (
             arr!(3, |a| w.splat(self.lo[a])),
             arr!(3, |a| w.splat(self.hi[a])),
@@ -324,7 +322,7 @@ impl<T: Real> WideOp<T> for G2pTask<'_, T> {
         let mut i = 0;
         while i < groups.len() {
             let g = &groups[i];
-            if use_pairs && pairs(g, groups.get(i + 1), T::N) {
+            if pairs(g, groups.get(i + 1), T::N) {
                 let gb = &groups[i + 1];
                 let last = i + 2 == groups.len();
                 held += self.unit::<W, true>(w, g, gb, last, bounds, &mut nan_probe);
