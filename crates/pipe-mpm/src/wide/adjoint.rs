@@ -21,7 +21,7 @@ use super::stress::{
     Mat, SlotMaterial, cofactor, ddot, det_with, lane_of, mul, mul_at, mul_bt, polar, predict,
 };
 use super::transfer::{
-    self, Axis, gather_unit, load_unit, pairs, splat_unit, store_unit, unit_momentum, weights,
+    self, Axis, Units, gather_unit, load_unit, splat_unit, store_unit, unit_momentum, weights,
 };
 use crate::boundary::Boundaries;
 use crate::grid::{GridSpec, NodeBox};
@@ -72,21 +72,12 @@ impl<T: Real> WideOp<T> for G2pAdjTask<'_, T> {
 
     #[inline(always)]
     fn with<W: Wide<T = T>>(mut self, w: W) {
-        let groups = self.groups;
-        // Small groups share a vector two by two, in the order they come (as in P2G).
-        let mut waiting: Option<usize> = None;
-        for (i, g) in groups.iter().enumerate() {
-            if 2 * g.n as usize <= T::N {
-                match waiting.take() {
-                    Some(first) => self.unit::<W, true>(w, first, i),
-                    None => waiting = Some(i),
-                }
-            } else {
-                self.unit::<W, false>(w, i, i);
+        // It scatters like P2G: any two small groups of the slab can pair.
+        for u in Units::in_order(self.groups, T::N) {
+            match u.b {
+                Some(b) => self.unit::<W, true>(w, u.a, b),
+                None => self.unit::<W, false>(w, u.a, u.a),
             }
-        }
-        if let Some(i) = waiting {
-            self.unit::<W, false>(w, i, i);
         }
     }
 }
@@ -350,16 +341,13 @@ impl<T: Real> WideOp<T> for P2gAdjTask<'_, T> {
 
     #[inline(always)]
     fn with<W: Wide<T = T>>(mut self, w: W) {
+        // It stores per slot like G2P: only neighbouring small groups pair.
         let groups = self.groups;
-        let mut i = 0;
-        while i < groups.len() {
-            let g = &groups[i];
-            if pairs(g, groups.get(i + 1), T::N) {
-                self.unit::<W, true>(w, g, &groups[i + 1], i + 2 == groups.len());
-                i += 2;
-            } else {
-                self.unit::<W, false>(w, g, g, i + 1 == groups.len());
-                i += 1;
+        for u in Units::neighbours(groups, T::N) {
+            let ga = &groups[u.a];
+            match u.b {
+                Some(b) => self.unit::<W, true>(w, ga, &groups[b], u.last),
+                None => self.unit::<W, false>(w, ga, ga, u.last),
             }
         }
     }

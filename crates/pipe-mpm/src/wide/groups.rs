@@ -184,7 +184,7 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
 /// rest; its particles counted in their x cell.
 ///
 /// A rest of at most half a vector goes first when the group before it is a small one that
-/// [`super::transfer::pairs`] would leave alone (`pending`), so the two share a vector; else
+/// [`super::transfer::Units::neighbours`] would leave alone (`pending`), so the two share a vector; else
 /// last, where the next run's rest can join it. `pending` is updated as that pairing, left to
 /// right, would leave it.
 #[inline(always)]

@@ -59,11 +59,102 @@ pub(crate) fn splat_unit<W: Wide, const PAIR: bool>(w: W, a: W::T, b: W::T) -> W
     }
 }
 
-/// Whether G2P runs groups `a` and `b` (consecutive in slot order) in one vector: both hold at
-/// most half a vector of particles.
-#[inline(always)]
-pub(crate) fn pairs(a: &Group, b: Option<&Group>, lanes: usize) -> bool {
-    b.is_some_and(|b| 2 * a.n as usize <= lanes && 2 * b.n as usize <= lanes)
+/// One unit of work of a transfer kernel: group `a` alone, or with group `b` in the two halves
+/// of one vector; `last` when no group of the task comes after it (indices into the task's
+/// groups).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Unit {
+    pub a: usize,
+    pub b: Option<usize>,
+    pub last: bool,
+}
+
+/// A task's groups as [`Unit`]s: groups of at most half a vector (`lanes / 2` particles) run
+/// two to a vector. Kernels that store per slot pair only neighbours ([`Units::neighbours`]:
+/// the pair's slots are contiguous); kernels that sum into nodes let a small group wait for the
+/// next small one ([`Units::in_order`]).
+pub(crate) struct Units<'g> {
+    groups: &'g [Group],
+    lanes: usize,
+    neighbours: bool,
+    next: usize,
+    waiting: Option<usize>,
+}
+
+impl<'g> Units<'g> {
+    /// Pairs of consecutive small groups.
+    pub fn neighbours(groups: &'g [Group], lanes: usize) -> Self {
+        Self {
+            groups,
+            lanes,
+            neighbours: true,
+            next: 0,
+            waiting: None,
+        }
+    }
+
+    /// Pairs of small groups in the order they come, whatever lies between them.
+    pub fn in_order(groups: &'g [Group], lanes: usize) -> Self {
+        Self {
+            neighbours: false,
+            ..Self::neighbours(groups, lanes)
+        }
+    }
+
+    #[inline(always)]
+    fn small(&self, i: usize) -> bool {
+        2 * self.groups[i].n as usize <= self.lanes
+    }
+}
+
+impl Iterator for Units<'_> {
+    type Item = Unit;
+
+    #[inline(always)]
+    fn next(&mut self) -> Option<Unit> {
+        let n = self.groups.len();
+        while self.next < n {
+            let i = self.next;
+            self.next += 1;
+            if self.neighbours {
+                if i + 1 < n && self.small(i) && self.small(i + 1) {
+                    self.next += 1;
+                    return Some(Unit {
+                        a: i,
+                        b: Some(i + 1),
+                        last: i + 2 == n,
+                    });
+                }
+                return Some(Unit {
+                    a: i,
+                    b: None,
+                    last: i + 1 == n,
+                });
+            }
+            if !self.small(i) {
+                return Some(Unit {
+                    a: i,
+                    b: None,
+                    last: false,
+                });
+            }
+            match self.waiting.take() {
+                Some(first) => {
+                    return Some(Unit {
+                        a: first,
+                        b: Some(i),
+                        last: false,
+                    });
+                }
+                None => self.waiting = Some(i),
+            }
+        }
+        self.waiting.take().map(|a| Unit {
+            a,
+            b: None,
+            last: true,
+        })
+    }
 }
 
 /// A unit's positions (lanes), the stencil bases of its groups and each lane's `fx` on the
@@ -118,8 +209,8 @@ pub(crate) fn unit_momentum<W: Wide, const PAIR: bool>(
 /// P2G of one slab's groups into its grid piece (starting at x-layer `first`):
 /// `mv_i += w (mom + A (x_i − x_p))`, `m_i += w m`, `mom = m v (+ f_ext dt)`.
 ///
-/// Groups of at most half a vector share a vector two by two, in the order they come: each
-/// half sums into its own group's nodes.
+/// Groups of at most half a vector share a vector two by two, in the order they come
+/// ([`Units::in_order`]): each half sums into its own group's nodes.
 pub(crate) struct P2gTask<'a, T> {
     pub grid: &'a GridSpec,
     pub groups: &'a [Group],
@@ -140,21 +231,15 @@ impl<T: Real> WideOp<T> for P2gTask<'_, T> {
 
     #[inline(always)]
     fn with<W: Wide<T = T>>(mut self, w: W) {
-        // A small group waits for the next small one of the slab (P2G reads its lanes from
-        // anywhere and stores only node sums, so the two need not be neighbours).
-        let mut waiting: Option<&Group> = None;
-        for g in self.groups {
-            if 2 * g.n as usize <= T::N {
-                match waiting.take() {
-                    Some(first) => self.unit::<W, true>(w, first, g),
-                    None => waiting = Some(g),
-                }
-            } else {
-                self.unit::<W, false>(w, g, g);
+        // P2G reads its lanes from anywhere and stores only node sums: any two small groups of
+        // the slab can pair.
+        let groups = self.groups;
+        for u in Units::in_order(groups, T::N) {
+            let ga = &groups[u.a];
+            match u.b {
+                Some(b) => self.unit::<W, true>(w, ga, &groups[b]),
+                None => self.unit::<W, false>(w, ga, ga),
             }
-        }
-        if let Some(g) = waiting {
-            self.unit::<W, false>(w, g, g);
         }
     }
 }
@@ -319,19 +404,12 @@ impl<T: Real> WideOp<T> for G2pTask<'_, T> {
             arr!(3, |a| w.splat(self.lo[a])),
             arr!(3, |a| w.splat(self.hi[a])),
         );
-        let mut i = 0;
-        while i < groups.len() {
-            let g = &groups[i];
-            if pairs(g, groups.get(i + 1), T::N) {
-                let gb = &groups[i + 1];
-                let last = i + 2 == groups.len();
-                held += self.unit::<W, true>(w, g, gb, last, bounds, &mut nan_probe);
-                i += 2;
-            } else {
-                let last = i + 1 == groups.len();
-                held += self.unit::<W, false>(w, g, g, last, bounds, &mut nan_probe);
-                i += 1;
-            }
+        for u in Units::neighbours(groups, T::N) {
+            let ga = &groups[u.a];
+            held += match u.b {
+                Some(b) => self.unit::<W, true>(w, ga, &groups[b], u.last, bounds, &mut nan_probe),
+                None => self.unit::<W, false>(w, ga, ga, u.last, bounds, &mut nan_probe),
+            };
         }
         (held, w.non_finite_mask(nan_probe) != 0)
     }
@@ -415,5 +493,72 @@ pub(crate) fn store_unit<W: Wide, const PAIR: bool>(
         w.store_halves(v, s, na, nb, whole);
     } else {
         w.store_n(v, s, lanes);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn groups(sizes: &[u32]) -> Vec<Group> {
+        let mut start = 0;
+        sizes
+            .iter()
+            .map(|&n| {
+                let g = Group {
+                    start,
+                    n,
+                    ..Group::default()
+                };
+                start += n;
+                g
+            })
+            .collect()
+    }
+
+    fn units(u: Units<'_>) -> Vec<(usize, Option<usize>, bool)> {
+        u.map(|u| (u.a, u.b, u.last)).collect()
+    }
+
+    /// Small groups (at most half the lanes) pair: in order for the scatter kernels, only as
+    /// neighbours for the per-slot ones; every group runs exactly once.
+    #[test]
+    fn units_pair_small_groups() {
+        let g = groups(&[1, 8, 2, 3, 8, 4, 5]);
+        assert_eq!(
+            units(Units::in_order(&g, 8)),
+            [
+                (1, None, false),
+                (0, Some(2), false),
+                (4, None, false),
+                (3, Some(5), false),
+                (6, None, false)
+            ]
+        );
+        assert_eq!(
+            units(Units::neighbours(&g, 8)),
+            [
+                (0, None, false),
+                (1, None, false),
+                (2, Some(3), false),
+                (4, None, false),
+                (5, None, false),
+                (6, None, true)
+            ]
+        );
+        // A small group left waiting runs alone at the end; with 4 lanes only 1–2 pair.
+        let g = groups(&[2, 3, 1]);
+        assert_eq!(
+            units(Units::in_order(&g, 4)),
+            [(1, None, false), (0, Some(2), false)]
+        );
+        assert_eq!(
+            units(Units::in_order(&groups(&[1, 4, 1, 2]), 4)),
+            [(1, None, false), (0, Some(2), false), (3, None, true)]
+        );
+        assert_eq!(
+            units(Units::neighbours(&groups(&[1, 2]), 4)),
+            [(0, Some(1), true)]
+        );
     }
 }
