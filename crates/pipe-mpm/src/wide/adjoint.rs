@@ -21,7 +21,7 @@ use super::stress::{
     Mat, SlotMaterial, cofactor, ddot, det_with, lane_of, mul, mul_at, mul_bt, polar, predict,
 };
 use super::transfer::{
-    self, Axis, Units, gather_unit, load_unit, splat_unit, store_unit, unit_momentum, weights,
+    self, Axis, SlotStores, Units, gather_unit, load_unit, splat_unit, unit_momentum, weights,
 };
 use crate::boundary::Boundaries;
 use crate::grid::{GridSpec, NodeBox};
@@ -430,20 +430,10 @@ impl<T: Real> P2gAdjTask<'_, T> {
             }
         }
         let out = &mut self.out;
-        let room = out.sm.len() - o;
-        // Whole-vector stores spill into the next groups' slots, which those groups overwrite
-        // afterwards; a task's last unit stores exactly its lanes.
-        let (lanes, whole) = if PAIR {
-            (0, !last && room >= na + h)
-        } else if last {
-            (na, false)
-        } else {
-            (T::N.min(room), false)
-        };
-        let how = (na, nb, lanes, whole);
+        let how = SlotStores::new::<PAIR>(na, nb, out.sm.len() - o, last, T::N);
         // Ā = dx Σ w m̄v eᵀ; x̄ += (1/dx)(Px, Py, Pz) − Aᵀ ḡ.
         for (abk, out_k) in ab.iter().zip(out.abar.iter_mut()) {
-            store_unit::<W, PAIR>(w, w.mul(dx, *abk), &mut out_k[o..], how);
+            how.store::<W, PAIR>(w, w.mul(dx, *abk), &mut out_k[o..]);
         }
         let p = [px, py, pz];
         for d in 0..3 {
@@ -467,9 +457,9 @@ impl<T: Real> P2gAdjTask<'_, T> {
                 let cur = w.load_part(&out.gx[d][o..]);
                 w.store_n(w.add(cur, add), &mut out.gx[d][o..], na);
             }
-            store_unit::<W, PAIR>(w, sgv[d], &mut out.sg[d][o..], how);
+            how.store::<W, PAIR>(w, sgv[d], &mut out.sg[d][o..]);
         }
-        store_unit::<W, PAIR>(w, smv, &mut out.sm[o..], how);
+        how.store::<W, PAIR>(w, smv, &mut out.sm[o..]);
     }
 }
 

@@ -432,31 +432,14 @@ impl<T: Real> G2pTask<'_, T> {
         let grid = self.grid;
         let c4 = w.c(4.0 * grid.inv_dx);
         let dt = w.c(self.dt);
-        let inv = w.c(grid.inv_dx);
-        let (sa, sb) = (ga.start as usize, gb.start as usize);
         let (na, nb) = (ga.n as usize, gb.n as usize);
-        let o = sa - self.s0;
-        let x: [W::V; 3] = arr!(3, |a| load_unit::<W, PAIR>(w, self.x_old[a], sa, sb));
-        let (base_a, base_b) = (ga.base.map(|b| b as usize), gb.base.map(|b| b as usize));
-        let st: [Axis<W>; 3] = arr!(3, |a| {
-            let base = splat_unit::<W, PAIR>(w, T::of(base_a[a] as f64), T::of(base_b[a] as f64));
-            weights(w, w.sub(w.mul(x[a], inv), base))
-        });
+        let o = ga.start as usize - self.s0;
+        let (x, base_a, base_b, fx) = unit_stencil::<W, PAIR>(w, grid, ga, gb, self.x_old);
+        let st: [Axis<W>; 3] = arr!(3, |a| weights(w, fx[a]));
         let (vel, b) = gather_unit::<W, PAIR>(w, grid, self.vgrid, base_a, base_b, &st);
         let out = &mut self.out;
-        let room = out.v[0].len() - o;
-        let h = T::N / 2;
-        // Whole-vector stores spill into the next groups' slots, which those groups overwrite
-        // afterwards (the old positions are read from a separate buffer); a task's last unit
-        // stores exactly its lanes.
-        let (lanes, whole) = if PAIR {
-            (0, !last && room >= na + h)
-        } else if last {
-            (na, false)
-        } else {
-            (T::N.min(room), false)
-        };
-        let how = (na, nb, lanes, whole);
+        // The old positions are read from a separate buffer, so spilled stores are safe.
+        let how = SlotStores::new::<PAIR>(na, nb, out.v[0].len() - o, last, T::N);
         let zero = w.zero();
         let mut moved = 0u32;
         for r in 0..3 {
@@ -464,15 +447,15 @@ impl<T: Real> G2pTask<'_, T> {
             let held_x = w.min(w.max(xn, bounds.0[r]), bounds.1[r]);
             moved |= w.ne_mask(held_x, xn);
             *nan_probe = w.fma(xn, zero, *nan_probe);
-            store_unit::<W, PAIR>(w, vel[r], &mut out.v[r][o..], how);
-            store_unit::<W, PAIR>(w, held_x, &mut out.x[r][o..], how);
+            how.store::<W, PAIR>(w, vel[r], &mut out.v[r][o..]);
+            how.store::<W, PAIR>(w, held_x, &mut out.x[r][o..]);
             for (col, bc) in b[r].iter().enumerate() {
                 let c = w.mul(c4, *bc);
-                store_unit::<W, PAIR>(w, c, &mut out.c[3 * r + col][o..], how);
+                how.store::<W, PAIR>(w, c, &mut out.c[3 * r + col][o..]);
             }
         }
         let real = if PAIR {
-            ((1u32 << na) - 1) | (((1u32 << nb) - 1) << h)
+            ((1u32 << na) - 1) | (((1u32 << nb) - 1) << (T::N / 2))
         } else {
             (1u32 << na) - 1
         };
@@ -480,19 +463,47 @@ impl<T: Real> G2pTask<'_, T> {
     }
 }
 
-/// Stores a unit's lanes to its slots `s[..]`: one group's first `lanes`, or (`PAIR`) a
-/// pair's halves ([`Wide::store_halves`]); `how` = `(na, nb, lanes, whole)`.
-#[inline(always)]
-pub(crate) fn store_unit<W: Wide, const PAIR: bool>(
-    w: W,
-    v: W::V,
-    s: &mut [W::T],
-    (na, nb, lanes, whole): (usize, usize, usize, bool),
-) {
-    if PAIR {
-        w.store_halves(v, s, na, nb, whole);
-    } else {
-        w.store_n(v, s, lanes);
+/// How a unit's lanes go to its slots.
+///
+/// Whole-vector stores spill into the next groups' slots, which those groups overwrite
+/// afterwards; a task's last unit stores exactly its lanes.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct SlotStores {
+    na: usize,
+    nb: usize,
+    lanes: usize,
+    whole: bool,
+}
+
+impl SlotStores {
+    /// For a unit of `na` (and, `PAIR`, `nb`) particles with `room` slots of the task from its
+    /// first, `last` when no group of the task follows it, `n` lanes per vector.
+    #[inline(always)]
+    pub fn new<const PAIR: bool>(na: usize, nb: usize, room: usize, last: bool, n: usize) -> Self {
+        let (lanes, whole) = if PAIR {
+            (0, !last && room >= na + n / 2)
+        } else if last {
+            (na, false)
+        } else {
+            (n.min(room), false)
+        };
+        Self {
+            na,
+            nb,
+            lanes,
+            whole,
+        }
+    }
+
+    /// Stores `v` to the unit's slots `s[..]`: one group's lanes, or (`PAIR`) a pair's halves
+    /// ([`Wide::store_halves`]).
+    #[inline(always)]
+    pub fn store<W: Wide, const PAIR: bool>(self, w: W, v: W::V, s: &mut [W::T]) {
+        if PAIR {
+            w.store_halves(v, s, self.na, self.nb, self.whole);
+        } else {
+            w.store_n(v, s, self.lanes);
+        }
     }
 }
 
