@@ -181,6 +181,11 @@ struct Times {
 /// One `pipe --threads t simulate` run: its times, substeps and output particle count.
 fn run_once(case: &Case, dir: &Path, threads: usize) -> (Times, u64, serde_json::Value) {
     let out = dir.join(format!("out-{threads}"));
+    // Every run writes into an empty folder: replacing the last run's files would add the
+    // file system's unlinking of them (~20 ms for a 100k run's 32 MB particles.arrow).
+    if out.exists() {
+        std::fs::remove_dir_all(&out).expect("remove the last run's output");
+    }
     let started = std::time::Instant::now();
     let status = Command::new(env!("CARGO_BIN_EXE_pipe"))
         .arg("--threads")

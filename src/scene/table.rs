@@ -5,6 +5,8 @@
 //! (the contract other tools read), and a test keeps the two in agreement.
 
 use std::fs::File;
+use std::io::BufWriter;
+use std::marker::PhantomData;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -70,6 +72,8 @@ pub trait Table: Sized {
     const NAME: &'static str;
     /// Schema version; part of every producing stage's cache key.
     const VERSION: u32;
+    /// How the file holds the rows (the contract's `format`).
+    const FORMAT: &'static str = "Arrow IPC file, one record batch";
     /// The Arrow schema.
     fn schema() -> Schema;
     /// To one record batch.
@@ -133,23 +137,107 @@ pub fn type_name(t: &DataType) -> String {
 
 /// Write a table atomically (temp file + rename).
 pub fn write<T: Table>(path: &Path, table: &T) -> Result<(), TableError> {
-    let batch = table.to_batch();
-    let io = |source| TableError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let arrow = |e: arrow_schema::ArrowError| TableError::Arrow {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    };
-    let tmp = path.with_extension(format!("arrow.{}.tmp", std::process::id()));
-    {
-        let file = File::create(&tmp).map_err(io)?;
-        let mut w = FileWriter::try_new(file, &batch.schema()).map_err(arrow)?;
-        w.write(&batch).map_err(arrow)?;
-        w.finish().map_err(arrow)?;
+    let mut w = Writer::<T>::create(path)?;
+    w.write(&table.to_batch())?;
+    w.finish()
+}
+
+/// A table written one record batch at a time (e.g. one per simulated frame, so a run never
+/// holds all its rows) into a temporary file beside `path` that becomes `path` only at
+/// [`Writer::finish`]. Dropped unfinished (an error, an interrupted run), it removes the
+/// temporary file: no file that looks complete is left.
+pub struct Writer<T: Table> {
+    path: PathBuf,
+    tmp: PathBuf,
+    /// The open file until the first batch gives the schema (a table's declared schema may
+    /// leave a list length open, e.g. the Gaussians' SH).
+    file: Option<BufWriter<File>>,
+    ipc: Option<FileWriter<BufWriter<File>>>,
+    table: PhantomData<T>,
+}
+
+impl<T: Table> Writer<T> {
+    /// Starts `path` (its temporary file).
+    pub fn create(path: &Path) -> Result<Self, TableError> {
+        let tmp = path.with_extension(format!("arrow.{}.tmp", std::process::id()));
+        let file = File::create(&tmp).map_err(|source| TableError::Io {
+            path: tmp.clone(),
+            source,
+        })?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            tmp,
+            file: Some(BufWriter::with_capacity(1 << 20, file)),
+            ipc: None,
+            table: PhantomData,
+        })
     }
-    std::fs::rename(&tmp, path).map_err(io)
+
+    /// Appends one record batch (`T`'s schema; the first batch's is the file's).
+    pub fn write(&mut self, batch: &RecordBatch) -> Result<(), TableError> {
+        let written = self.ipc(&batch.schema()).and_then(|w| w.write(batch));
+        written.map_err(|e| self.arrow(e))
+    }
+
+    /// Closes the file and moves it to `path`.
+    pub fn finish(mut self) -> Result<(), TableError> {
+        let closed = self.ipc(&Arc::new(T::schema())).and_then(|w| w.finish());
+        let closed = closed.and_then(|()| {
+            let ipc = self.ipc.take().expect("opened above");
+            let buffered = ipc.into_inner()?;
+            buffered.into_inner().map_err(|e| e.into_error().into())
+        });
+        let renamed = match closed {
+            Err(e) => Err(self.arrow(e)),
+            Ok(file) => {
+                drop(file);
+                std::fs::rename(&self.tmp, &self.path).map_err(|source| TableError::Io {
+                    path: self.path.clone(),
+                    source,
+                })
+            }
+        };
+        if renamed.is_err() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+        renamed
+    }
+
+    /// The IPC writer, started with `schema` if no batch has been written yet.
+    fn ipc(
+        &mut self,
+        schema: &Schema,
+    ) -> Result<&mut FileWriter<BufWriter<File>>, arrow_schema::ArrowError> {
+        if let Some(file) = self.file.take() {
+            self.ipc = Some(FileWriter::try_new(file, schema)?);
+        }
+        Ok(self.ipc.as_mut().expect("the file is open until finished"))
+    }
+
+    fn arrow(&self, e: arrow_schema::ArrowError) -> TableError {
+        TableError::Arrow {
+            path: self.path.clone(),
+            message: e.to_string(),
+        }
+    }
+}
+
+impl<T: Table> std::fmt::Debug for Writer<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Writer")
+            .field("table", &T::NAME)
+            .field("path", &self.path)
+            .field("open", &(self.ipc.is_some() || self.file.is_some()))
+            .finish()
+    }
+}
+
+impl<T: Table> Drop for Writer<T> {
+    fn drop(&mut self) {
+        if self.ipc.take().is_some() || self.file.take().is_some() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
 }
 
 /// Read a table, checking its schema.
@@ -166,21 +254,11 @@ pub fn read<T: Table>(path: &Path) -> Result<T, TableError> {
     let schema = reader.schema();
     check_schema(path, &T::schema(), &schema)?;
     let batches = reader.collect::<Result<Vec<_>, _>>().map_err(arrow)?;
-    let batch = arrow_select_concat(&schema, &batches).map_err(arrow)?;
+    let batch = match batches.as_slice() {
+        [one] => one.clone(),
+        _ => arrow_select::concat::concat_batches(&schema, &batches).map_err(arrow)?,
+    };
     T::from_batch(&batch, path)
-}
-
-fn arrow_select_concat(
-    schema: &Arc<Schema>,
-    batches: &[RecordBatch],
-) -> Result<RecordBatch, arrow_schema::ArrowError> {
-    match batches {
-        [] => Ok(RecordBatch::new_empty(schema.clone())),
-        [one] => Ok(one.clone()),
-        _ => Err(arrow_schema::ArrowError::InvalidArgumentError(
-            "tables are written as one record batch; this file has several".into(),
-        )),
-    }
 }
 
 /// The column `name` of `batch`, downcast to `A` (the schema was checked, so this holds).
@@ -197,7 +275,7 @@ pub fn schema_json<T: Table>() -> serde_json::Value {
     serde_json::json!({
         "table": T::NAME,
         "version": T::VERSION,
-        "format": "Arrow IPC file, one record batch",
+        "format": T::FORMAT,
         "columns": s.fields().iter().map(|f| serde_json::json!({
             "name": f.name(),
             "type": type_name(f.data_type()),

@@ -305,9 +305,6 @@ pub fn run_with(
     };
     let done = spec.material.mpm_family().visit(job)?;
 
-    // Rows per written frame (the fillers are not written).
-    let out_count = done.trajectories.len() / frames as usize;
-    table::write(&out.join("particles.arrow"), &done.trajectories)?;
     let mut warnings = setup.warnings.clone();
     warnings.extend(done.warnings);
     let substeps_total = done.stats.iter().map(|s| s.substeps).sum();
@@ -325,7 +322,7 @@ pub fn run_with(
         frame_dt_s: spec.frame_dt,
         simulated_time_s: f64::from(frames - 1) * spec.frame_dt,
         particles_in: n,
-        particles_out: out_count,
+        particles_out: done.particles_out,
         spacing_m: setup.spacing.map(|s| s.spacing),
         median_nn_distance_m: setup.spacing.map(|s| s.median_nn),
         dx_m: setup.dx,
@@ -441,7 +438,8 @@ struct FrameStep {
 
 /// What the run produced.
 struct Done {
-    trajectories: Trajectories,
+    /// Particles in every written frame.
+    particles_out: usize,
     stats: Vec<FrameStats>,
     warnings: Vec<String>,
     /// Time from the command's start to the first substep (s).
@@ -611,9 +609,14 @@ impl Job<'_> {
         }
         // Only the input particles are written; the fillers follow them unseen.
         let n_out = self.n_input;
-        let mut traj = Trajectories::with_capacity(self.frames as usize, n_out);
-        let pos = traj.push_frame(0, &state.x[..n_out], &state.v[..n_out]);
-        output::write_frame(self.out, 0, pos)?;
+        let mut table = table::Writer::<Trajectories>::create(&self.out.join("particles.arrow"))?;
+        output::write_frame(
+            self.out,
+            &mut table,
+            0,
+            &state.x[..n_out],
+            &state.v[..n_out],
+        )?;
         if let Some(g) = self.gaussians {
             output::write_splats(self.out, 0, g)?;
         }
@@ -670,8 +673,13 @@ impl Job<'_> {
                 context: format!("frame {frame}: reading the state"),
                 source,
             })?;
-            let pos = traj.push_frame(frame as u16, &state.x[..n_out], &state.v[..n_out]);
-            output::write_frame(self.out, frame, pos)?;
+            output::write_frame(
+                self.out,
+                &mut table,
+                frame,
+                &state.x[..n_out],
+                &state.v[..n_out],
+            )?;
             if let Some(g) = self.gaussians {
                 let f = splat_deformation(spec.material.family, &state.f[..n_out]);
                 output::write_splats(self.out, frame, &deform(g, &state.x[..n_out], &f))?;
@@ -697,8 +705,9 @@ impl Job<'_> {
                 max_held: rep.max_held,
             });
         }
+        table.finish()?;
         Ok(Done {
-            trajectories: traj,
+            particles_out: n_out,
             stats,
             warnings,
             setup_s,

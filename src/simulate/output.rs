@@ -20,10 +20,10 @@ use super::SimulateError;
 use super::spec::{BoxSpec, MaterialSpec, short_number};
 use crate::io::ply;
 use crate::scene::gaussians::Gaussians;
-use crate::scene::table::{Table, TableError, column};
+use crate::scene::table::{self, Table, TableError, column};
 
-/// The `particles` table (`particles.arrow`, Arrow IPC file, one record batch), rows ordered by
-/// frame then particle:
+/// The `particles` table (`particles.arrow`, Arrow IPC file, one record batch per frame, written
+/// as the run goes: [`Trajectories::frame_batch`]), rows ordered by frame then particle:
 ///
 /// | column | type | meaning |
 /// |---|---|---|
@@ -46,26 +46,31 @@ pub struct Trajectories {
 }
 
 impl Trajectories {
-    /// Room for `frames` frames of `n` particles.
-    pub fn with_capacity(frames: usize, n: usize) -> Self {
-        let rows = frames * n;
-        Self {
-            frame: Vec::with_capacity(rows),
-            id: Vec::with_capacity(rows),
-            x: Vec::with_capacity(rows),
-            v: Vec::with_capacity(rows),
-        }
-    }
-
-    /// Appends one frame of positions and velocities (one row per particle, in order); returns
-    /// the frame's positions as stored.
-    pub fn push_frame(&mut self, frame: u16, x: &[DVec3], v: &[DVec3]) -> &[[f32; 3]] {
-        let first = self.x.len();
-        self.frame.extend(std::iter::repeat_n(frame, x.len()));
-        self.id.extend((0..x.len()).map(|i| i as u32));
-        self.x.extend(x.iter().map(|p| p.as_vec3().to_array()));
-        self.v.extend(v.iter().map(|p| p.as_vec3().to_array()));
-        &self.x[first..]
+    /// The record batch of one frame: one row per particle, in order, from its positions (m)
+    /// and velocities (m/s).
+    pub fn frame_batch(frame: u16, x: &[DVec3], v: &[DVec3]) -> RecordBatch {
+        let comp = |src: &[DVec3], a: usize| -> Arc<dyn arrow_array::Array> {
+            Arc::new(Float32Array::from_iter_values(
+                src.iter().map(|p| p[a] as f32),
+            ))
+        };
+        RecordBatch::try_new(
+            Arc::new(Self::schema()),
+            vec![
+                Arc::new(UInt16Array::from_iter_values(std::iter::repeat_n(
+                    frame,
+                    x.len(),
+                ))),
+                Arc::new(UInt32Array::from_iter_values(0..x.len() as u32)),
+                comp(x, 0),
+                comp(x, 1),
+                comp(x, 2),
+                comp(v, 0),
+                comp(v, 1),
+                comp(v, 2),
+            ],
+        )
+        .expect("columns match the schema")
     }
 
     /// Number of rows.
@@ -92,6 +97,7 @@ impl Trajectories {
 impl Table for Trajectories {
     const NAME: &'static str = "particles";
     const VERSION: u32 = 1;
+    const FORMAT: &'static str = "Arrow IPC file, one record batch per frame";
 
     fn schema() -> Schema {
         let f32col = |n: &str| Field::new(n, DataType::Float32, false);
@@ -351,9 +357,18 @@ pub fn write_splats(dir: &Path, frame: u32, g: &Gaussians) -> Result<(), Simulat
     Ok(())
 }
 
-/// Writes one frame's positions.
-pub fn write_frame(dir: &Path, frame: u32, pos: &[[f32; 3]]) -> Result<(), SimulateError> {
-    ply::write_points(&frame_path(dir, frame), pos, None)?;
+/// Writes one frame's positions (m): `frame_NNNN.ply` and the frame's rows of
+/// `particles.arrow`.
+pub fn write_frame(
+    dir: &Path,
+    table: &mut table::Writer<Trajectories>,
+    frame: u32,
+    x: &[DVec3],
+    v: &[DVec3],
+) -> Result<(), SimulateError> {
+    let pos: Vec<[f32; 3]> = x.iter().map(|p| p.as_vec3().to_array()).collect();
+    ply::write_points(&frame_path(dir, frame), &pos, None)?;
+    table.write(&Trajectories::frame_batch(frame as u16, x, v))?;
     Ok(())
 }
 

@@ -210,7 +210,16 @@ fn example_sim_yaml_on_a_lattice() {
         "{report}"
     );
 
-    // particles.arrow: 14 000 rows, frame-major, matching the PLYs; frame-0 velocity = v0.
+    // particles.arrow: 14 000 rows, frame-major, one batch per frame, matching the PLYs;
+    // frame-0 velocity = v0.
+    let batches = arrow_ipc::reader::FileReader::try_new(
+        std::fs::File::open(out.join("particles.arrow")).unwrap(),
+        None,
+    )
+    .unwrap()
+    .map(|b| b.unwrap().num_rows())
+    .collect::<Vec<_>>();
+    assert_eq!(batches, [1000; 14]);
     let tab: Trajectories = table::read(&out.join("particles.arrow")).unwrap();
     assert_eq!(tab.len(), 14_000);
     assert_eq!(tab.frame[999], 0);
