@@ -45,8 +45,10 @@ pub(crate) struct Groups {
     /// Scratch of the slab bucketing: particles per x cell, each x cell's slab.
     per_cell: Vec<usize>,
     slab_of: Vec<u32>,
-    /// Scratch of the key tasks: each one's groups and particles per x cell.
+    /// Scratch of the key tasks: each one's groups (the first `task_len` of a buffer kept at
+    /// its largest size, so no pass re-initialises it) and particles per x cell.
     task_groups: Vec<Vec<Group>>,
+    task_len: Vec<usize>,
     task_cells: Vec<Vec<usize>>,
 }
 
@@ -61,15 +63,16 @@ struct KeyTask<'a, T> {
     /// Positions from the task's first particle (padded arrays, so whole vectors load).
     x: [&'a [T]; 3],
     keys: &'a mut [u32],
-    /// The task's groups (runs of equal keys, cut at `T::N` and at the task's end), appended.
-    groups: &'a mut Vec<Group>,
+    /// The task's groups (runs of equal keys, cut at `T::N` and at the task's end), written
+    /// from the start (room for one per particle and one more).
+    groups: &'a mut [Group],
     /// The task's particles per x cell of their bases, added to.
     per_cell: &'a mut [usize],
 }
 
 impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
-    /// The box of the bases.
-    type Output = ([usize; 3], [usize; 3]);
+    /// The box of the bases, and the number of groups.
+    type Output = ([usize; 3], [usize; 3], usize);
 
     #[inline(always)]
     fn with<W: Wide<T = T>>(self, w: W) -> Self::Output {
@@ -89,6 +92,7 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
         };
         let mut prev = u32::MAX;
         let mut pending = false;
+        let mut count = 0usize;
         let n = keys.len();
         let inv = w.c(grid.inv_dx);
         let top: [W::V; 3] = arr!(3, |a| w.c((grid.dims[a] - 3) as f64));
@@ -151,7 +155,15 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
                 let l = starts.trailing_zeros() as usize;
                 starts &= starts - 1;
                 let at = (first + s + l) as u32;
-                push_run(groups, per_cell, &mut pending, run, at, T::N as u32);
+                push_run(
+                    groups,
+                    &mut count,
+                    per_cell,
+                    &mut pending,
+                    run,
+                    at,
+                    T::N as u32,
+                );
                 run = Group {
                     start: at,
                     n: 0,
@@ -162,6 +174,7 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
         }
         push_run(
             groups,
+            &mut count,
             per_cell,
             &mut pending,
             run,
@@ -176,20 +189,25 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
         (
             arr!(3, |a| box_of(lo[a], f64::min, f64::MAX) as usize),
             arr!(3, |a| box_of(hi[a], f64::max, -1.0).max(0.0) as usize),
+            count,
         )
     }
 }
 
-/// The groups of the run of equal keys `run.start..end`: pieces of `lanes` particles and the
-/// rest; its particles counted in their x cell.
+/// The groups of the run of equal keys `run.start..end`, written at `out[*count..]`: pieces
+/// of `lanes` particles and the rest; its particles counted in their x cell.
 ///
 /// A rest of at most half a vector goes first when the group before it is a small one that
-/// [`super::transfer::Units::neighbours`] would leave alone (`pending`), so the two share a vector; else
-/// last, where the next run's rest can join it. `pending` is updated as that pairing, left to
-/// right, would leave it.
+/// [`super::transfer::Units::neighbours`] would leave alone (`pending`), so the two share a
+/// vector; else last, where the next run's rest can join it. `pending` is updated as that
+/// pairing, left to right, would leave it.
+///
+/// Runs of up to two vectors (all but a few) take no branch: both of their at most two
+/// groups are written, the second counted only when not empty (`out` has room for one more).
 #[inline(always)]
 fn push_run(
-    groups: &mut Vec<Group>,
+    out: &mut [Group],
+    count: &mut usize,
     per_cell: &mut [usize],
     pending: &mut bool,
     run: Group,
@@ -202,14 +220,34 @@ fn push_run(
     let len = end - run.start;
     per_cell[run.base[0] as usize] += len as usize;
     let rest = len % lanes;
-    let rest_first = rest > 0 && 2 * rest <= lanes && *pending;
+    let rest_first = (rest > 0) & (2 * rest <= lanes) & *pending;
+    if len <= 2 * lanes {
+        let first = if rest_first { rest } else { len.min(lanes) };
+        let second = len - first;
+        out[*count] = Group { n: first, ..run };
+        out[*count + 1] = Group {
+            start: run.start + first,
+            n: second,
+            ..run
+        };
+        let after_first = (2 * first <= lanes) & !*pending;
+        let after_second = (2 * second <= lanes) & !after_first;
+        *pending = if second > 0 {
+            after_second
+        } else {
+            after_first
+        };
+        *count += 1 + usize::from(second > 0);
+        return;
+    }
     let mut at = run.start;
     let mut emit = |n: u32| {
-        groups.push(Group {
+        out[*count] = Group {
             start: at,
             n,
             ..run
-        });
+        };
+        *count += 1;
         at += n;
         *pending = 2 * n <= lanes && !*pending;
     };
@@ -238,9 +276,10 @@ impl Groups {
         let xs = [p.x(0), p.x(1), p.x(2)];
         let n_tasks = n.div_ceil(KEY_CHUNK);
         self.task_groups.resize_with(n_tasks, Vec::new);
+        self.task_len.resize(n_tasks, 0);
         self.task_cells.resize_with(n_tasks, Vec::new);
         let isa = Isa::detect();
-        let boxes: Vec<([usize; 3], [usize; 3])> = self
+        let boxes: Vec<([usize; 3], [usize; 3], usize)> = self
             .key
             .par_chunks_mut(KEY_CHUNK)
             .zip(self.task_groups.par_iter_mut())
@@ -248,7 +287,9 @@ impl Groups {
             .enumerate()
             .map(|(t, ((keys, groups), per_cell))| {
                 let at = t * KEY_CHUNK;
-                groups.clear();
+                if groups.len() < keys.len() + 1 {
+                    groups.resize(keys.len() + 1, Group::default());
+                }
                 per_cell.clear();
                 per_cell.resize(dims[0], 0);
                 isa.run_wide(KeyTask {
@@ -262,7 +303,8 @@ impl Groups {
             })
             .collect();
         let (mut lo, mut hi) = ([usize::MAX; 3], [0usize; 3]);
-        for (l, h) in &boxes {
+        for (t, (l, h, count)) in boxes.iter().enumerate() {
+            self.task_len[t] = *count;
             for a in 0..3 {
                 lo[a] = lo[a].min(l[a]);
                 hi[a] = hi[a].max(h[a]);
@@ -274,18 +316,22 @@ impl Groups {
             z: lo[2]..hi[2] + 3,
         };
         // The tasks' groups, concatenated in slot order.
-        let total: usize = self.task_groups.iter().map(Vec::len).sum();
+        let task_groups: Vec<&[Group]> = (self.task_groups.iter())
+            .zip(&self.task_len)
+            .map(|(g, &len)| &g[..len])
+            .collect();
+        let total: usize = self.task_len.iter().sum();
         self.list.resize(total, Group::default());
         let mut rest = self.list.as_mut_slice();
         let mut pieces = Vec::with_capacity(n_tasks);
-        for g in &self.task_groups {
+        for g in &task_groups {
             let (mine, tail) = rest.split_at_mut(g.len());
             pieces.push(mine);
             rest = tail;
         }
         pieces
             .into_par_iter()
-            .zip(self.task_groups.par_iter())
+            .zip(task_groups.par_iter())
             .for_each(|(out, g)| out.copy_from_slice(g));
         // Slabs: equal-count cuts of the particles' x cells.
         self.per_cell.clear();
@@ -304,12 +350,11 @@ impl Groups {
         }
         // Each task's groups per slab, then each (slab, task)'s place in `by_slab`.
         let slab_of = &self.slab_of;
-        let counts: Vec<Vec<usize>> = self
-            .task_groups
+        let counts: Vec<Vec<usize>> = task_groups
             .par_iter()
             .map(|g| {
                 let mut c = vec![0usize; n_slabs];
-                for gr in g {
+                for gr in g.iter() {
                     c[slab_of[gr.base[0] as usize] as usize] += 1;
                 }
                 c
@@ -333,10 +378,10 @@ impl Groups {
         }
         places
             .into_par_iter()
-            .zip(self.task_groups.par_iter())
+            .zip(task_groups.par_iter())
             .for_each(|(mut out, g)| {
                 let mut fill = vec![0usize; n_slabs];
-                for gr in g {
+                for gr in g.iter() {
                     let s = slab_of[gr.base[0] as usize] as usize;
                     out[s][fill[s]] = *gr;
                     fill[s] += 1;
