@@ -418,6 +418,19 @@ fn a_fixed_step_divergence_without_nan_is_stopped() {
         msg.contains(&format!("diverged by the start of frame {frame}")),
         "{msg}"
     );
+    // The frames before it stay; the table, written as the run went, is not left behind,
+    // complete-looking or temporary.
+    let names: Vec<String> = std::fs::read_dir(tmp.path().join("out"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    assert!(names.contains(&"frame_0001.ply".to_string()), "{names:?}");
+    assert!(
+        names
+            .iter()
+            .all(|n| n.starts_with("frame_") && n.ends_with(".ply")),
+        "{names:?}"
+    );
 }
 
 /// Defaults from the particles: a PAC-NeRF cloud (8 random particles per 2 cm cell) gives
