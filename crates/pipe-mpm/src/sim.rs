@@ -107,6 +107,9 @@ pub struct Simulator<M: Constitutive> {
     pub(crate) adjoint_cache: BufferCache,
     /// The checkpoint buffers of the last dropped tape (reused by the next `forward_tape`).
     pub(crate) tape_pool: TapePool,
+    /// The gradient arrays of the last dropped [`crate::adjoint::Gradients`] (reused by the
+    /// next backward pass).
+    pub(crate) grad_pool: TapePool,
 }
 
 /// Where a dropped [`crate::adjoint::Tape`] returns its checkpoint buffers: the tape holds it
@@ -185,6 +188,7 @@ impl<M: Constitutive> Simulator<M> {
             wide_cache: BufferCache::default(),
             adjoint_cache: BufferCache::default(),
             tape_pool: TapePool::default(),
+            grad_pool: TapePool::default(),
         })
     }
 

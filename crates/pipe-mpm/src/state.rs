@@ -365,7 +365,7 @@ pub fn lame_grad_to_e_nu(e: f64, nu: f64, g_mu: f64, g_lam: f64) -> (f64, f64) {
 }
 
 /// Gradients of a state (same layout as [`State`]).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct StateGrad {
     /// `∂L/∂x` (1/m · units of L).
     pub x: Vec<DVec3>,
@@ -469,7 +469,7 @@ impl std::ops::Add for FamilyGrad {
 }
 
 /// Gradients of the per-particle material and the family parameters.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct MaterialGrad {
     /// `∂L/∂m_p` (per kg).
     pub mass: Vec<f64>,
@@ -487,6 +487,21 @@ pub struct MaterialGrad {
 }
 
 impl MaterialGrad {
+    /// All zero for `n` particles, in place (arrays of the same length keep their memory).
+    pub(crate) fn reset(&mut self, n: usize) {
+        for v in [
+            &mut self.mass,
+            &mut self.volume,
+            &mut self.mu,
+            &mut self.lam,
+        ] {
+            v.clear();
+            v.resize(n, 0.0);
+        }
+        self.family = FamilyGrad::default();
+        self.family_per_particle.clear();
+    }
+
     /// All-zero gradient for `n` particles.
     pub fn zeros(n: usize) -> Self {
         Self {

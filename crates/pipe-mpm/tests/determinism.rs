@@ -53,7 +53,8 @@ fn run(threads: usize) -> (State, StateGrad, Vec<f64>) {
                 BackwardOptions::default(),
             )
             .unwrap();
-        (s, g.state, g.material.mu)
+        let (state, material) = g.into_parts();
+        (s, state, material.mu)
     })
 }
 
@@ -96,7 +97,8 @@ fn reused_tape_buffers_give_the_same_bits() {
                     BackwardOptions::default(),
                 )
                 .unwrap();
-            (s, first, g.state, g.material.mu)
+            // Cloned, so that `g` drops and its arrays go back for the next pass to fill.
+            (s, first, g.state.clone(), g.material.mu.clone())
         };
         let fresh = pass(6);
         assert_eq!(fresh, pass(6), "{precision:?}: a reused tape differs");
@@ -115,4 +117,43 @@ fn reused_tape_buffers_give_the_same_bits() {
             "{precision:?}: after shorter and longer tapes"
         );
     }
+}
+
+/// A dropped `Gradients` returns its arrays to its simulator and the next backward pass fills
+/// them (no fresh memory), with the same bits as into fresh arrays; `into_parts` keeps them.
+#[test]
+fn dropped_gradients_are_recycled() {
+    let (sim, s0, mat) = scene();
+    let grads = || {
+        let mut s = s0.clone();
+        let tape = sim.forward_tape(&mut s, &mat, 0.0, 4, 2).unwrap();
+        sim.backward(
+            &tape,
+            &mat,
+            |k, st| {
+                (k == 4).then(|| {
+                    let mut seed = StateGrad::zeros(st.get().len());
+                    seed.x.clone_from(&st.get().x);
+                    seed
+                })
+            },
+            BackwardOptions::default(),
+        )
+        .unwrap()
+    };
+    let first = grads();
+    let (x_at, mu_at) = (first.state.x.as_ptr(), first.material.mu.as_ptr());
+    let (state, mu) = (first.state.clone(), first.material.mu.clone());
+    drop(first);
+    let second = grads();
+    assert_eq!(second.state.x.as_ptr(), x_at, "state arrays not recycled");
+    assert_eq!(
+        second.material.mu.as_ptr(),
+        mu_at,
+        "material arrays not recycled"
+    );
+    assert_eq!((&second.state, &second.material.mu), (&state, &mu));
+    let (kept, _) = second.into_parts();
+    assert_eq!(kept, state);
+    assert_eq!(grads().state, state);
 }

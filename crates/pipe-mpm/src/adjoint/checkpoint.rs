@@ -204,6 +204,10 @@ impl Default for BackwardOptions {
 }
 
 /// Result of [`Simulator::backward`].
+///
+/// Dropped, it returns its arrays to the simulator that made it (if it still exists), and the
+/// next backward pass of the same particle count fills them instead of faulting in fresh
+/// memory (an optimisation loop's gradients, like its tapes, are recycled).
 #[derive(Debug, Clone)]
 pub struct Gradients {
     /// `∂L/∂(state at substep start)`.
@@ -212,6 +216,35 @@ pub struct Gradients {
     pub start: usize,
     /// Material and family gradients.
     pub material: MaterialGrad,
+    /// The simulator's pool, which takes the arrays back.
+    pub(crate) pool: Weak<BufferCache>,
+}
+
+/// The arrays a dropped [`Gradients`] leaves for the next backward pass.
+pub(crate) type GradArrays = (StateGrad, MaterialGrad);
+
+impl Gradients {
+    /// The state and material gradients, owned (they are then not recycled).
+    pub fn into_parts(mut self) -> (StateGrad, MaterialGrad) {
+        self.pool = Weak::new();
+        (
+            std::mem::take(&mut self.state),
+            std::mem::take(&mut self.material),
+        )
+    }
+}
+
+impl Drop for Gradients {
+    fn drop(&mut self) {
+        let Some(pool) = self.pool.upgrade() else {
+            return;
+        };
+        let arrays: GradArrays = (
+            std::mem::take(&mut self.state),
+            std::mem::take(&mut self.material),
+        );
+        pool.put(arrays);
+    }
 }
 
 impl<M: Constitutive> Simulator<M> {
@@ -315,6 +348,7 @@ impl<M: Constitutive> Simulator<M> {
         let mut seed_fn = |k: usize, src: &dyn SeedSource, sink: &mut dyn GradSink| {
             seed(k, SeedState { src }, &mut SeedGrad { sink })
         };
+        let mut reuse = self.grad_pool.0.take::<GradArrays>();
         let (state, material) = crate::sim::on_worker(|| {
             per_precision!(TapeData, &tape.data, t => backward(
                 self,
@@ -326,12 +360,14 @@ impl<M: Constitutive> Simulator<M> {
                 start,
                 opts.snapshots,
                 &mut seed_fn,
+                reuse.take(),
             ))
         })?;
         Ok(Gradients {
             state,
             start,
             material,
+            pool: Arc::downgrade(&self.grad_pool.0),
         })
     }
 }

@@ -5,6 +5,7 @@
 mod checkpoint;
 pub(crate) mod schedule;
 
+pub(crate) use checkpoint::GradArrays;
 pub use checkpoint::{BackwardOptions, Gradients, SeedGrad, SeedState, Tape};
 pub(crate) use checkpoint::{GradSink, SeedSource};
 pub use schedule::SEGMENT_SNAPSHOTS;
@@ -77,7 +78,7 @@ impl<M: Constitutive> Simulator<M> {
         let mut adj = AdjBuffers::default();
         adjoint_step(&e, &start, e.work(), &mut g, &mut acc, &mut adj);
         acc.add_into(&e.ids, gmat);
-        Ok(to_state_grad(&g, &e.ids, None).0)
+        Ok(to_state_grad(&g, &e.ids, None, StateGrad::default()).0)
     }
 }
 

@@ -515,6 +515,7 @@ pub(crate) fn to_state_grad<T: Real>(
     g: &Soa<T>,
     ids: &[u32],
     scratch: Option<Soa<T>>,
+    mut out: StateGrad,
 ) -> (StateGrad, Soa<T>) {
     let n = ids.len();
     let mut rank = vec![0u32; n];
@@ -528,35 +529,34 @@ pub(crate) fn to_state_grad<T: Real>(
     let st = c.stride;
     let at = |f: &[T], field: usize, i: usize| f[field * st + i].f64();
     let (x, vcf) = (&c.x, &c.vcf);
-    let vec3 = |f: &[T], base: usize| -> Vec<DVec3> {
-        (0..n)
-            .into_par_iter()
-            .map(|i| DVec3::new(at(f, base, i), at(f, base + 1, i), at(f, base + 2, i)))
-            .collect()
+    // Into `out`'s arrays (kept when they already hold `n`).
+    let vec3 = |out: &mut Vec<DVec3>, f: &[T], base: usize| {
+        out.resize(n, DVec3::ZERO);
+        out.par_iter_mut().enumerate().for_each(|(i, o)| {
+            *o = DVec3::new(at(f, base, i), at(f, base + 1, i), at(f, base + 2, i));
+        });
     };
     // Row-major fields into column-major matrices.
-    let mat3 = |base: usize| -> Vec<DMat3> {
-        (0..n)
-            .into_par_iter()
-            .map(|i| {
-                DMat3::from_cols_array(&std::array::from_fn(|k| {
-                    at(vcf, base + 3 * (k % 3) + k / 3, i)
-                }))
-            })
-            .collect()
+    let mat3 = |out: &mut Vec<DMat3>, base: usize| {
+        out.resize(n, DMat3::ZERO);
+        out.par_iter_mut().enumerate().for_each(|(i, o)| {
+            *o = DMat3::from_cols_array(&std::array::from_fn(|k| {
+                at(vcf, base + 3 * (k % 3) + k / 3, i)
+            }));
+        });
     };
-    let out = StateGrad {
-        x: vec3(x, 0),
-        v: vec3(vcf, V),
-        c: mat3(C),
-        f: mat3(F),
-    };
+    vec3(&mut out.x, x, 0);
+    vec3(&mut out.v, vcf, V);
+    mat3(&mut out.c, C);
+    mat3(&mut out.f, F);
     (out, c)
 }
 
 /// The first NaN/Inf of a gradient state (slot order `ids`), as (quantity, caller's index).
 fn first_non_finite<T: Real>(g: &Soa<T>, ids: &[u32]) -> Option<(&'static str, usize)> {
-    to_state_grad(g, ids, None).0.first_non_finite()
+    to_state_grad(g, ids, None, StateGrad::default())
+        .0
+        .first_non_finite()
 }
 
 /// `g` (slot order `from_ids`) reordered to slot order `to_ids`, written into `scratch` (a
@@ -608,6 +608,7 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
     start: usize,
     snapshots: usize,
     seed: &mut SeedFn<'_>,
+    reuse: Option<crate::adjoint::GradArrays>,
 ) -> Result<(StateGrad, MaterialGrad), MpmError> {
     let np = mat.len();
     // The backward pass's arrays from the last one, else the forward runs' (one set alive).
@@ -654,7 +655,8 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
             },
         )?;
     }
-    let mut gmat = MaterialGrad::zeros(np);
+    let (out, mut gmat) = reuse.unwrap_or_default();
+    gmat.reset(np);
     // One slot-order accumulator per slot order (a taped run changes it only where it
     // re-sorts), so until then each particle's material gradient sums its substeps in one
     // sequence whatever the checkpoint interval.
@@ -710,7 +712,7 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
     if M::HAS_FAMILY_PARAMS && gmat.family_per_particle.is_empty() {
         gmat.family_per_particle = vec![FamilyGrad::default(); np];
     }
-    let (out, scratch) = to_state_grad(&g, &order_g, rev.spare.pop());
+    let (out, scratch) = to_state_grad(&g, &order_g, rev.spare.pop(), out);
     rev.spare.push(scratch);
     sim.adjoint_cache.put(BackCache {
         engine: e.into_buffers(),
