@@ -792,12 +792,15 @@ impl<T: Precise> Reverser<'_, T> {
         // The first substep reads the base and writes every field of the new buffer (no copy).
         let mut buf = self.spare.pop().unwrap_or_else(|| Soa::new(base.n));
         std::mem::swap(&mut c.e.p, &mut buf);
+        let was = c.e.keep;
+        c.e.keep = keep;
         c.e.regroup_from(Some(base), false);
         c.e.step_from(self.t0 + from as f64 * self.dt, Some(base));
         for k in from + 1..to {
             c.e.regroup(false);
             c.e.step(self.t0 + k as f64 * self.dt);
         }
+        c.e.keep = was;
         std::mem::swap(&mut c.e.p, &mut buf);
         self.stack.push(buf);
         keep.then(|| {
