@@ -28,6 +28,10 @@ pub(crate) struct Group {
 /// depend on the thread count).
 const KEY_CHUNK: usize = 4096;
 
+/// Particles whose run starts the key pass collects before cutting their runs (a multiple of
+/// the lane counts; one bit each in a `u64`).
+const BLOCK: usize = 64;
+
 /// The groups of a substep, bucketed by slab.
 #[derive(Debug, Clone, Default)]
 pub(crate) struct Groups {
@@ -101,60 +105,74 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
         let exact = (grid.len() as f64) < if T::N == 8 { 16_777_216.0 } else { 9e15 };
         let (mut lo, mut hi) = ([w.c(f64::MAX); 3], [w.c(-1.0); 3]);
         let full = n / T::N * T::N;
-        for s in (0..n).step_by(T::N) {
-            let b: [W::V; 3] = arr!(3, |a| {
-                let f = w.floor(w.sub(w.mul(w.load(&x[a][s..]), inv), w.c(0.5)));
-                w.min(w.max(f, w.zero()), top[a])
-            });
-            let m = (n - s).min(T::N);
-            let bu: [[u32; 8]; 3] = arr!(3, |a| w.to_u32(b[a]));
-            if s < full {
-                for a in 0..3 {
-                    lo[a] = w.min(lo[a], b[a]);
-                    hi[a] = w.max(hi[a], b[a]);
-                }
-            } else {
-                // The tail: only its particles count towards the box.
-                for a in 0..3 {
-                    let (mut l, mut h) = (w.lanes(lo[a]), w.lanes(hi[a]));
-                    for v in &w.lanes(b[a])[..m] {
-                        if *v < l[0] {
-                            l[0] = *v;
-                        }
-                        if *v > h[0] {
-                            h[0] = *v;
-                        }
+        // Blocks of `BLOCK` particles: the vectors' run starts gather into one mask, whose runs
+        // are then cut (one loop exit per block, not per vector).
+        let mut bases = [[0u32; BLOCK]; 3];
+        for b0 in (0..n).step_by(BLOCK) {
+            let mut block_starts = 0u64;
+            for s in (b0..(b0 + BLOCK).min(n)).step_by(T::N) {
+                let b: [W::V; 3] = arr!(3, |a| {
+                    let f = w.floor(w.sub(w.mul(w.load(&x[a][s..]), inv), w.c(0.5)));
+                    w.min(w.max(f, w.zero()), top[a])
+                });
+                let m = (n - s).min(T::N);
+                let bu: [[u32; 8]; 3] = arr!(3, |a| w.to_u32(b[a]));
+                if s < full {
+                    for a in 0..3 {
+                        lo[a] = w.min(lo[a], b[a]);
+                        hi[a] = w.max(hi[a], b[a]);
                     }
-                    lo[a] = w.vector(l);
-                    hi[a] = w.vector(h);
+                } else {
+                    // The tail: only its particles count towards the box.
+                    for a in 0..3 {
+                        let (mut l, mut h) = (w.lanes(lo[a]), w.lanes(hi[a]));
+                        for v in &w.lanes(b[a])[..m] {
+                            if *v < l[0] {
+                                l[0] = *v;
+                            }
+                            if *v > h[0] {
+                                h[0] = *v;
+                            }
+                        }
+                        lo[a] = w.vector(l);
+                        hi[a] = w.vector(h);
+                    }
+                }
+                let k = if exact {
+                    w.to_u32(w.fma(w.fma(b[0], dy, b[1]), dz, b[2]))
+                } else {
+                    arr!(8, |l| {
+                        grid.linear([bu[0][l] as usize, bu[1][l] as usize, bu[2][l] as usize])
+                            as u32
+                    })
+                };
+                if m == T::N {
+                    // A whole vector: a copy of known length (no call to `memcpy`).
+                    let whole: &mut [u32] = &mut keys[s..s + T::N];
+                    for (out, key) in whole.iter_mut().zip(&k) {
+                        *out = *key;
+                    }
+                } else {
+                    keys[s..s + m].copy_from_slice(&k[..m]);
+                }
+                // Lanes whose key differs from the one before start a run (branch-free).
+                let mut starts = 0u64;
+                for (l, &key) in k[..m].iter().enumerate() {
+                    starts |= u64::from(key != prev) << l;
+                    prev = key;
+                }
+                block_starts |= starts << (s - b0);
+                for (a, lanes) in bu.iter().enumerate() {
+                    let out: &mut [u32] = &mut bases[a][s - b0..s - b0 + T::N];
+                    for (o, v) in out.iter_mut().zip(lanes) {
+                        *o = *v;
+                    }
                 }
             }
-            let k = if exact {
-                w.to_u32(w.fma(w.fma(b[0], dy, b[1]), dz, b[2]))
-            } else {
-                arr!(8, |l| {
-                    grid.linear([bu[0][l] as usize, bu[1][l] as usize, bu[2][l] as usize]) as u32
-                })
-            };
-            if m == T::N {
-                // A whole vector: a copy of known length (no call to `memcpy`).
-                let whole: &mut [u32] = &mut keys[s..s + T::N];
-                for (out, key) in whole.iter_mut().zip(&k) {
-                    *out = *key;
-                }
-            } else {
-                keys[s..s + m].copy_from_slice(&k[..m]);
-            }
-            // Lanes whose key differs from the one before start a run (branch-free).
-            let mut starts = 0u32;
-            for (l, &key) in k[..m].iter().enumerate() {
-                starts |= u32::from(key != prev) << l;
-                prev = key;
-            }
-            while starts != 0 {
-                let l = starts.trailing_zeros() as usize;
-                starts &= starts - 1;
-                let at = (first + s + l) as u32;
+            while block_starts != 0 {
+                let l = block_starts.trailing_zeros() as usize;
+                block_starts &= block_starts - 1;
+                let at = (first + b0 + l) as u32;
                 push_run(
                     groups,
                     &mut count,
@@ -167,8 +185,8 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
                 run = Group {
                     start: at,
                     n: 0,
-                    cell: k[l],
-                    base: [bu[0][l], bu[1][l], bu[2][l]],
+                    cell: keys[b0 + l],
+                    base: [bases[0][l], bases[1][l], bases[2][l]],
                 };
             }
         }
