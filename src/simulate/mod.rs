@@ -34,6 +34,7 @@ use pipe_mpm::{
     StableStep, State, StepLimits, speed_bound, stable_step_at_speed,
 };
 
+use output::{FrameOut, ToWriter};
 pub use output::{FrameStats, Summary, Timing, Trajectories};
 pub use spec::{SimSpec, load_spec};
 
@@ -43,7 +44,7 @@ use crate::pipeline::spec::SpecError;
 use crate::pipeline::yaml::Position;
 use crate::scene::deform::deform;
 use crate::scene::gaussians::Gaussians;
-use crate::scene::table::{self, TableError};
+use crate::scene::table::TableError;
 use fill::Splat;
 use setup::Setup;
 use spec::fmt_num;
@@ -607,111 +608,131 @@ impl Job<'_> {
                 self.out.display()
             ));
         }
-        // Only the input particles are written; the fillers follow them unseen.
-        let n_out = self.n_input;
-        let mut table = table::Writer::<Trajectories>::create(&self.out.join("particles.arrow"))?;
-        output::write_frame(
-            self.out,
-            &mut table,
-            0,
-            &state.x[..n_out],
-            &state.v[..n_out],
-        )?;
-        if let Some(g) = self.gaussians {
-            output::write_splats(self.out, 0, g)?;
-        }
-        let mut stats = Vec::new();
-        let mut warnings = Vec::new();
-        let setup_s = self.started.elapsed().as_secs_f64();
-        let mut substeps_s = 0.0;
-        self.progress
-            .start("simulate", u64::from(self.frames.saturating_sub(1)));
-        for frame in 1..self.frames {
-            let FrameStep {
-                substeps: n_sub,
-                reason,
-                stable,
-                max_speed,
-                speed,
-                unstable,
-            } = self.substeps(&sim, &state, frame)?;
-            let dt = spec.frame_dt / n_sub as f64;
-            if unstable {
-                let w = format!(
-                    "frame {frame}: `substeps` = {n_sub} gives dt = {dt:.3e} s (CFL number \
-                     {:.2}), above the largest step a fixed count may take, {:.3e} s \
-                     (allow_unstable)",
-                    stable.cfl_number(dt),
-                    stable.max_fixed_dt()
-                );
-                self.progress.log(&format!("warning: {w}"));
-                warnings.push(w);
-            }
-            let t0 = f64::from(frame - 1) * spec.frame_dt;
-            let stepping = Instant::now();
-            let rep = stepper.advance(t0, dt, n_sub);
-            substeps_s += stepping.elapsed().as_secs_f64();
-            let rep = rep.map_err(|source| {
-                let why = if unstable {
-                    " (the substep is above the stability limit: allow_unstable)"
-                } else {
-                    ""
-                };
-                SimulateError::Simulation {
-                    context: format!(
-                        "frame {frame} ({n_sub} substeps of {dt:.3e} s from t = {t0:.4} s){why}"
-                    ),
-                    source,
-                }
-            })?;
-            // The next frame's substeps need the velocities; the splats need `F` too.
-            let read = match self.gaussians {
-                Some(_) => stepper.read(&mut state),
-                None => stepper.read_motion(&mut state),
+        // The frames are written on a thread of their own, while the next one simulates
+        // ([`output::write_frames`]); one frame waits at most.
+        std::thread::scope(|scope| {
+            let (tx, rx) = std::sync::mpsc::sync_channel::<ToWriter>(1);
+            let out_dir = self.out;
+            let writer = scope.spawn(move || output::write_frames(out_dir, rx));
+            let join = |w: std::thread::ScopedJoinHandle<'_, Result<(), SimulateError>>| {
+                w.join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
             };
-            read.map_err(|source| SimulateError::Simulation {
-                context: format!("frame {frame}: reading the state"),
-                source,
-            })?;
-            output::write_frame(
-                self.out,
-                &mut table,
-                frame,
-                &state.x[..n_out],
-                &state.v[..n_out],
-            )?;
-            if let Some(g) = self.gaussians {
-                let f = splat_deformation(spec.material.family, &state.f[..n_out]);
-                output::write_splats(self.out, frame, &deform(g, &state.x[..n_out], &f))?;
+            // `None`: the writer stopped (its error is the run's).
+            let mut run = || -> Result<Option<Done>, SimulateError> {
+                // Only the input particles are written; the fillers follow them unseen.
+                let n_out = self.n_input;
+                let frame0 = FrameOut::new(
+                    0,
+                    &state.x[..n_out],
+                    &state.v[..n_out],
+                    self.gaussians.cloned(),
+                );
+                if tx.send(ToWriter::Frame(Box::new(frame0))).is_err() {
+                    return Ok(None);
+                }
+                let mut stats = Vec::new();
+                let mut warnings = Vec::new();
+                let setup_s = self.started.elapsed().as_secs_f64();
+                let mut substeps_s = 0.0;
+                self.progress
+                    .start("simulate", u64::from(self.frames.saturating_sub(1)));
+                for frame in 1..self.frames {
+                    let FrameStep {
+                        substeps: n_sub,
+                        reason,
+                        stable,
+                        max_speed,
+                        speed,
+                        unstable,
+                    } = self.substeps(&sim, &state, frame)?;
+                    let dt = spec.frame_dt / n_sub as f64;
+                    if unstable {
+                        let w = format!(
+                            "frame {frame}: `substeps` = {n_sub} gives dt = {dt:.3e} s (CFL number \
+                             {:.2}), above the largest step a fixed count may take, {:.3e} s \
+                             (allow_unstable)",
+                            stable.cfl_number(dt),
+                            stable.max_fixed_dt()
+                        );
+                        self.progress.log(&format!("warning: {w}"));
+                        warnings.push(w);
+                    }
+                    let t0 = f64::from(frame - 1) * spec.frame_dt;
+                    let stepping = Instant::now();
+                    let rep = stepper.advance(t0, dt, n_sub);
+                    substeps_s += stepping.elapsed().as_secs_f64();
+                    let rep = rep.map_err(|source| {
+                        let why = if unstable {
+                            " (the substep is above the stability limit: allow_unstable)"
+                        } else {
+                            ""
+                        };
+                        SimulateError::Simulation {
+                            context: format!(
+                                "frame {frame} ({n_sub} substeps of {dt:.3e} s from t = {t0:.4} s){why}"
+                            ),
+                            source,
+                        }
+                    })?;
+                    // The next frame's substeps need the velocities; the splats need `F` too.
+                    let read = match self.gaussians {
+                        Some(_) => stepper.read(&mut state),
+                        None => stepper.read_motion(&mut state),
+                    };
+                    read.map_err(|source| SimulateError::Simulation {
+                        context: format!("frame {frame}: reading the state"),
+                        source,
+                    })?;
+                    let splats = self.gaussians.map(|g| {
+                        let f = splat_deformation(spec.material.family, &state.f[..n_out]);
+                        deform(g, &state.x[..n_out], &f)
+                    });
+                    let out = FrameOut::new(frame, &state.x[..n_out], &state.v[..n_out], splats);
+                    if tx.send(ToWriter::Frame(Box::new(out))).is_err() {
+                        return Ok(None);
+                    }
+                    self.progress.message(&format!(
+                        "frame {frame}: {n_sub} substeps ({reason}), held {}",
+                        rep.held
+                    ));
+                    self.progress.inc(1);
+                    stats.push(FrameStats {
+                        frame,
+                        substeps: n_sub,
+                        dt_s: dt,
+                        substeps_reason: reason.to_string(),
+                        binding_limit: stable.limit().to_string(),
+                        stable_dt_s: stable.dt(),
+                        max_fixed_dt_s: stable.max_fixed_dt(),
+                        cfl_number: stable.cfl_number(dt),
+                        max_speed_m_s: max_speed,
+                        speed_bound_m_s: speed,
+                        unstable,
+                        held: rep.held,
+                        max_held: rep.max_held,
+                    });
+                }
+                Ok(Some(Done {
+                    particles_out: n_out,
+                    stats,
+                    warnings,
+                    setup_s,
+                    substeps_s,
+                }))
+            };
+            let run = run();
+            let finish = matches!(run, Ok(Some(_))) && tx.send(ToWriter::Finish).is_ok();
+            drop(tx);
+            let written = join(writer);
+            match run? {
+                Some(done) if finish => written.map(|()| done),
+                _ => Err(written.err().unwrap_or_else(|| SimulateError::Io {
+                    path: out_dir.to_path_buf(),
+                    action: "write the frames",
+                    source: std::io::Error::other("the frame writer stopped"),
+                })),
             }
-            self.progress.message(&format!(
-                "frame {frame}: {n_sub} substeps ({reason}), held {}",
-                rep.held
-            ));
-            self.progress.inc(1);
-            stats.push(FrameStats {
-                frame,
-                substeps: n_sub,
-                dt_s: dt,
-                substeps_reason: reason.to_string(),
-                binding_limit: stable.limit().to_string(),
-                stable_dt_s: stable.dt(),
-                max_fixed_dt_s: stable.max_fixed_dt(),
-                cfl_number: stable.cfl_number(dt),
-                max_speed_m_s: max_speed,
-                speed_bound_m_s: speed,
-                unstable,
-                held: rep.held,
-                max_held: rep.max_held,
-            });
-        }
-        table.finish()?;
-        Ok(Done {
-            particles_out: n_out,
-            stats,
-            warnings,
-            setup_s,
-            substeps_s,
         })
     }
 }

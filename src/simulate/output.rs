@@ -1,4 +1,5 @@
-//! What `pipe simulate` writes into its output folder, every file atomically:
+//! What `pipe simulate` writes into its output folder, every file atomically, on a writer
+//! thread of its own while the next frame simulates:
 //!
 //! - `frame_0000.ply` … `frame_{frames-1}.ply`: positions (m) as binary little-endian
 //!   `float x y z`; frame 0 is the input state (particles outside a given `domain` moved to
@@ -10,6 +11,7 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::sync::mpsc::Receiver;
 
 use arrow_array::{Float32Array, RecordBatch, UInt16Array, UInt32Array};
 use arrow_schema::{DataType, Field, Schema};
@@ -48,11 +50,9 @@ pub struct Trajectories {
 impl Trajectories {
     /// The record batch of one frame: one row per particle, in order, from its positions (m)
     /// and velocities (m/s).
-    pub fn frame_batch(frame: u16, x: &[DVec3], v: &[DVec3]) -> RecordBatch {
-        let comp = |src: &[DVec3], a: usize| -> Arc<dyn arrow_array::Array> {
-            Arc::new(Float32Array::from_iter_values(
-                src.iter().map(|p| p[a] as f32),
-            ))
+    pub fn frame_batch(frame: u16, x: &[[f32; 3]], v: &[[f32; 3]]) -> RecordBatch {
+        let comp = |src: &[[f32; 3]], a: usize| -> Arc<dyn arrow_array::Array> {
+            Arc::new(Float32Array::from_iter_values(src.iter().map(|p| p[a])))
         };
         RecordBatch::try_new(
             Arc::new(Self::schema()),
@@ -285,7 +285,9 @@ pub struct Timing {
     pub setup: f64,
     /// The substeps alone (the simulator's kernels), over all frames.
     pub substeps: f64,
-    /// Reading back each frame's state, the frame PLYs, `particles.arrow` and the summary.
+    /// The rest: reading back each frame's state and handing it to the writer thread, the
+    /// stability check of each frame, waiting for the writer at the end (the frame PLYs and
+    /// `particles.arrow` are written while the next frame simulates) and the summary.
     pub output: f64,
 }
 
@@ -351,24 +353,52 @@ pub fn splats_path(dir: &Path, frame: u32) -> PathBuf {
     dir.join(format!("splats_{frame:04}.ply"))
 }
 
-/// Writes one frame's splats (a 3DGS PLY).
-pub fn write_splats(dir: &Path, frame: u32, g: &Gaussians) -> Result<(), SimulateError> {
-    ply::write_gaussians(&splats_path(dir, frame), g)?;
-    Ok(())
+/// One output frame, as the simulating thread hands it to the writer: positions (m) and
+/// velocities (m/s) in `f32`, as written, and the splats (`--splats`).
+pub(crate) struct FrameOut {
+    frame: u32,
+    x: Vec<[f32; 3]>,
+    v: Vec<[f32; 3]>,
+    splats: Option<Gaussians>,
 }
 
-/// Writes one frame's positions (m): `frame_NNNN.ply` and the frame's rows of
-/// `particles.arrow`.
-pub fn write_frame(
-    dir: &Path,
-    table: &mut table::Writer<Trajectories>,
-    frame: u32,
-    x: &[DVec3],
-    v: &[DVec3],
-) -> Result<(), SimulateError> {
-    let pos: Vec<[f32; 3]> = x.iter().map(|p| p.as_vec3().to_array()).collect();
-    ply::write_points(&frame_path(dir, frame), &pos, None)?;
-    table.write(&Trajectories::frame_batch(frame as u16, x, v))?;
+impl FrameOut {
+    pub(crate) fn new(frame: u32, x: &[DVec3], v: &[DVec3], splats: Option<Gaussians>) -> Self {
+        let f32s = |p: &[DVec3]| p.iter().map(|p| p.as_vec3().to_array()).collect();
+        Self {
+            frame,
+            x: f32s(x),
+            v: f32s(v),
+            splats,
+        }
+    }
+}
+
+/// What the simulating thread sends the writer.
+pub(crate) enum ToWriter {
+    Frame(Box<FrameOut>),
+    /// The run succeeded: finish `particles.arrow`.
+    Finish,
+}
+
+/// The writer (a thread of its own, so that a frame's files are written while the next frame
+/// simulates): each frame's `frame_NNNN.ply`, `splats_NNNN.ply` and rows of `particles.arrow`.
+/// The table is finished on [`ToWriter::Finish`] only: a run that fails leaves none, and its
+/// temporary file is removed. Stops at its first error.
+pub(crate) fn write_frames(dir: &Path, frames: Receiver<ToWriter>) -> Result<(), SimulateError> {
+    let mut table = table::Writer::<Trajectories>::create(&dir.join("particles.arrow"))?;
+    for message in frames {
+        match message {
+            ToWriter::Frame(f) => {
+                ply::write_points(&frame_path(dir, f.frame), &f.x, None)?;
+                table.write(&Trajectories::frame_batch(f.frame as u16, &f.x, &f.v))?;
+                if let Some(g) = &f.splats {
+                    ply::write_gaussians(&splats_path(dir, f.frame), g)?;
+                }
+            }
+            ToWriter::Finish => return Ok(table.finish()?),
+        }
+    }
     Ok(())
 }
 

@@ -433,6 +433,36 @@ fn a_fixed_step_divergence_without_nan_is_stopped() {
     );
 }
 
+/// The frames are written on a thread of their own while the next frame simulates. When a
+/// frame cannot be written (here `frame_0003.ply` is taken by a folder), the run stops with
+/// that file's error, and leaves no `particles.arrow` and no temporary file.
+#[test]
+fn a_frame_that_cannot_be_written_stops_the_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = lattice(6, 0.01, [0.0, 0.1, 0.0]);
+    let ply_in = write_ply(tmp.path(), "block.ply", &input);
+    let out = tmp.path().join("out");
+    std::fs::create_dir_all(out.join("frame_0003.ply").join("taken")).unwrap();
+    let e = simulate::run(&ply_in, &fixture("example.sim.yaml"), 8, &out, &quiet()).unwrap_err();
+    let msg = e.to_string();
+    assert!(msg.contains("frame_0003.ply"), "{msg}");
+    let mut names: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        [
+            "frame_0000.ply",
+            "frame_0001.ply",
+            "frame_0002.ply",
+            "frame_0003.ply"
+        ],
+        "{msg}"
+    );
+}
+
 /// Defaults from the particles: a PAC-NeRF cloud (8 random particles per 2 cm cell) gives
 /// dx ≈ 0.02 m and particle volume ≈ 1e-6 m³ although its median nearest-neighbour distance is
 /// only ≈ 6 mm; a lattice gives its spacing exactly.
