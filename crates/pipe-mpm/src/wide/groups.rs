@@ -95,8 +95,13 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
             base: [0; 3],
         };
         let mut prev = u32::MAX;
-        let mut pending = false;
-        let mut count = 0usize;
+        let mut cut = RunCutter {
+            out: groups,
+            count: 0,
+            per_cell,
+            pending: false,
+            lanes: T::N as u32,
+        };
         let n = keys.len();
         let inv = w.c(grid.inv_dx);
         let top: [W::V; 3] = arr!(3, |a| w.c((grid.dims[a] - 3) as f64));
@@ -173,15 +178,7 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
                 let l = block_starts.trailing_zeros() as usize;
                 block_starts &= block_starts - 1;
                 let at = (first + b0 + l) as u32;
-                push_run(
-                    groups,
-                    &mut count,
-                    per_cell,
-                    &mut pending,
-                    run,
-                    at,
-                    T::N as u32,
-                );
+                cut.push(run, at);
                 run = Group {
                     start: at,
                     n: 0,
@@ -190,15 +187,7 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
                 };
             }
         }
-        push_run(
-            groups,
-            &mut count,
-            per_cell,
-            &mut pending,
-            run,
-            (first + n) as u32,
-            T::N as u32,
-        );
+        cut.push(run, (first + n) as u32);
         let box_of = |v: W::V, f: fn(f64, f64) -> f64, init: f64| {
             w.lanes(v)[..T::N]
                 .iter()
@@ -207,76 +196,84 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
         (
             arr!(3, |a| box_of(lo[a], f64::min, f64::MAX) as usize),
             arr!(3, |a| box_of(hi[a], f64::max, -1.0).max(0.0) as usize),
-            count,
+            cut.count,
         )
     }
 }
 
-/// The groups of the run of equal keys `run.start..end`, written at `out[*count..]`: pieces
-/// of `lanes` particles and the rest; its particles counted in their x cell.
-///
-/// A rest of at most half a vector goes first when the group before it is a small one that
-/// [`super::transfer::Units::neighbours`] would leave alone (`pending`), so the two share a
-/// vector; else last, where the next run's rest can join it. `pending` is updated as that
-/// pairing, left to right, would leave it.
-///
-/// Runs of up to two vectors (all but a few) take no branch: both of their at most two
-/// groups are written, the second counted only when not empty (`out` has room for one more).
-#[inline(always)]
-fn push_run(
-    out: &mut [Group],
-    count: &mut usize,
-    per_cell: &mut [usize],
-    pending: &mut bool,
-    run: Group,
-    end: u32,
+/// Cuts the key pass's runs of equal keys into groups, written from the start of `out` (room
+/// for one group per particle and one more), and counts their particles per x cell.
+struct RunCutter<'a> {
+    out: &'a mut [Group],
+    /// Groups written.
+    count: usize,
+    per_cell: &'a mut [usize],
+    /// The last group written is a small one that [`super::transfer::Units::neighbours`]
+    /// would leave alone.
+    pending: bool,
+    /// Lanes of a vector.
     lanes: u32,
-) {
-    if end <= run.start {
-        return;
-    }
-    let len = end - run.start;
-    per_cell[run.base[0] as usize] += len as usize;
-    let rest = len % lanes;
-    let rest_first = (rest > 0) & (2 * rest <= lanes) & *pending;
-    if len <= 2 * lanes {
-        let first = if rest_first { rest } else { len.min(lanes) };
-        let second = len - first;
-        out[*count] = Group { n: first, ..run };
-        out[*count + 1] = Group {
-            start: run.start + first,
-            n: second,
-            ..run
+}
+
+impl RunCutter<'_> {
+    /// The groups of the run of equal keys `run.start..end`: pieces of `lanes` particles and the
+    /// rest.
+    ///
+    /// A rest of at most half a vector goes first when the group before it is `pending`, so the
+    /// two share a vector; else last, where the next run's rest can join it. `pending` is
+    /// updated as that pairing, left to right, would leave it.
+    ///
+    /// Runs of up to two vectors (all but a few) take no branch: both of their at most two
+    /// groups are written, the second counted only when not empty.
+    #[inline(always)]
+    fn push(&mut self, run: Group, end: u32) {
+        if end <= run.start {
+            return;
+        }
+        let (lanes, pending) = (self.lanes, self.pending);
+        let len = end - run.start;
+        self.per_cell[run.base[0] as usize] += len as usize;
+        let rest = len % lanes;
+        let rest_first = (rest > 0) & (2 * rest <= lanes) & pending;
+        if len <= 2 * lanes {
+            let first = if rest_first { rest } else { len.min(lanes) };
+            let second = len - first;
+            self.out[self.count] = Group { n: first, ..run };
+            self.out[self.count + 1] = Group {
+                start: run.start + first,
+                n: second,
+                ..run
+            };
+            let after_first = (2 * first <= lanes) & !pending;
+            let after_second = (2 * second <= lanes) & !after_first;
+            self.pending = if second > 0 {
+                after_second
+            } else {
+                after_first
+            };
+            self.count += 1 + usize::from(second > 0);
+            return;
+        }
+        let mut at = run.start;
+        let mut emit = |n: u32| {
+            self.out[self.count] = Group {
+                start: at,
+                n,
+                ..run
+            };
+            self.count += 1;
+            at += n;
+            self.pending = 2 * n <= lanes && !self.pending;
         };
-        let after_first = (2 * first <= lanes) & !*pending;
-        let after_second = (2 * second <= lanes) & !after_first;
-        *pending = if second > 0 {
-            after_second
-        } else {
-            after_first
-        };
-        *count += 1 + usize::from(second > 0);
-        return;
-    }
-    let mut at = run.start;
-    let mut emit = |n: u32| {
-        out[*count] = Group {
-            start: at,
-            n,
-            ..run
-        };
-        *count += 1;
-        at += n;
-        *pending = 2 * n <= lanes && !*pending;
-    };
-    if rest_first {
-        emit(rest);
-    }
-    for _ in 0..len / lanes {
-        emit(lanes);
-    }
-    if rest > 0 && !rest_first {
-        emit(rest);
+        if rest_first {
+            emit(rest);
+        }
+        for _ in 0..len / lanes {
+            emit(lanes);
+        }
+        if rest > 0 && !rest_first {
+            emit(rest);
+        }
     }
 }
 
