@@ -31,12 +31,13 @@ use std::time::Instant;
 use glam::{DMat3, DVec3};
 use pipe_mpm::{
     Boundaries, BoundaryKind, Constitutive, Material, ModelVisitor, MpmError, SimConfig, Simulator,
-    StableStep, State, StepLimits, speed_bound, stable_step_at_speed,
+    StableStep, State, StepLimits, Stepper, speed_bound, stable_step_at_speed,
 };
 
 use output::{FrameOut, ToWriter};
 pub use output::{FrameStats, Summary, Timing, Trajectories};
 pub use spec::{SimSpec, load_spec};
+use std::sync::mpsc::SyncSender;
 
 use crate::io::ply::{self, PlyError};
 use crate::pipeline::progress::Progress;
@@ -618,110 +619,7 @@ impl Job<'_> {
                 w.join()
                     .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
             };
-            // `None`: the writer stopped (its error is the run's).
-            let mut run = || -> Result<Option<Done>, SimulateError> {
-                // Only the input particles are written; the fillers follow them unseen.
-                let n_out = self.n_input;
-                let frame0 = FrameOut::new(
-                    0,
-                    &state.x[..n_out],
-                    &state.v[..n_out],
-                    self.gaussians.cloned(),
-                );
-                if tx.send(ToWriter::Frame(Box::new(frame0))).is_err() {
-                    return Ok(None);
-                }
-                let mut stats = Vec::new();
-                let mut warnings = Vec::new();
-                let setup_s = self.started.elapsed().as_secs_f64();
-                let mut substeps_s = 0.0;
-                self.progress
-                    .start("simulate", u64::from(self.frames.saturating_sub(1)));
-                for frame in 1..self.frames {
-                    let FrameStep {
-                        substeps: n_sub,
-                        reason,
-                        stable,
-                        max_speed,
-                        speed,
-                        unstable,
-                    } = self.substeps(&sim, &state, frame)?;
-                    let dt = spec.frame_dt / n_sub as f64;
-                    if unstable {
-                        let w = format!(
-                            "frame {frame}: `substeps` = {n_sub} gives dt = {dt:.3e} s (CFL number \
-                             {:.2}), above the largest step a fixed count may take, {:.3e} s \
-                             (allow_unstable)",
-                            stable.cfl_number(dt),
-                            stable.max_fixed_dt()
-                        );
-                        self.progress.log(&format!("warning: {w}"));
-                        warnings.push(w);
-                    }
-                    let t0 = f64::from(frame - 1) * spec.frame_dt;
-                    let stepping = Instant::now();
-                    let rep = stepper.advance(t0, dt, n_sub);
-                    substeps_s += stepping.elapsed().as_secs_f64();
-                    let rep = rep.map_err(|source| {
-                        let why = if unstable {
-                            " (the substep is above the stability limit: allow_unstable)"
-                        } else {
-                            ""
-                        };
-                        SimulateError::Simulation {
-                            context: format!(
-                                "frame {frame} ({n_sub} substeps of {dt:.3e} s from t = {t0:.4} s){why}"
-                            ),
-                            source,
-                        }
-                    })?;
-                    // The next frame's substeps need the velocities; the splats need `F` too.
-                    let read = match self.gaussians {
-                        Some(_) => stepper.read(&mut state),
-                        None => stepper.read_motion(&mut state),
-                    };
-                    read.map_err(|source| SimulateError::Simulation {
-                        context: format!("frame {frame}: reading the state"),
-                        source,
-                    })?;
-                    let splats = self.gaussians.map(|g| {
-                        let f = splat_deformation(spec.material.family, &state.f[..n_out]);
-                        deform(g, &state.x[..n_out], &f)
-                    });
-                    let out = FrameOut::new(frame, &state.x[..n_out], &state.v[..n_out], splats);
-                    if tx.send(ToWriter::Frame(Box::new(out))).is_err() {
-                        return Ok(None);
-                    }
-                    self.progress.message(&format!(
-                        "frame {frame}: {n_sub} substeps ({reason}), held {}",
-                        rep.held
-                    ));
-                    self.progress.inc(1);
-                    stats.push(FrameStats {
-                        frame,
-                        substeps: n_sub,
-                        dt_s: dt,
-                        substeps_reason: reason.to_string(),
-                        binding_limit: stable.limit().to_string(),
-                        stable_dt_s: stable.dt(),
-                        max_fixed_dt_s: stable.max_fixed_dt(),
-                        cfl_number: stable.cfl_number(dt),
-                        max_speed_m_s: max_speed,
-                        speed_bound_m_s: speed,
-                        unstable,
-                        held: rep.held,
-                        max_held: rep.max_held,
-                    });
-                }
-                Ok(Some(Done {
-                    particles_out: n_out,
-                    stats,
-                    warnings,
-                    setup_s,
-                    substeps_s,
-                }))
-            };
-            let run = run();
+            let run = self.frames(&sim, &mut stepper, &mut state, &tx);
             let finish = matches!(run, Ok(Some(_))) && tx.send(ToWriter::Finish).is_ok();
             drop(tx);
             let written = join(writer);
@@ -734,5 +632,118 @@ impl Job<'_> {
                 })),
             }
         })
+    }
+
+    /// Simulates frames `1..frames` from `state` (in `stepper`), handing every frame, 0
+    /// included, to the writer on `tx`; `None` when the writer stopped (its error is the
+    /// run's).
+    fn frames<M: Constitutive>(
+        &self,
+        sim: &Simulator<M>,
+        stepper: &mut Stepper<'_, M>,
+        state: &mut State,
+        tx: &SyncSender<ToWriter>,
+    ) -> Result<Option<Done>, SimulateError> {
+        let spec = self.spec;
+        // Only the input particles are written; the fillers follow them unseen.
+        let n_out = self.n_input;
+        let frame0 = FrameOut::new(
+            0,
+            &state.x[..n_out],
+            &state.v[..n_out],
+            self.gaussians.cloned(),
+        );
+        if tx.send(ToWriter::Frame(Box::new(frame0))).is_err() {
+            return Ok(None);
+        }
+        let mut stats = Vec::new();
+        let mut warnings = Vec::new();
+        let setup_s = self.started.elapsed().as_secs_f64();
+        let mut substeps_s = 0.0;
+        self.progress
+            .start("simulate", u64::from(self.frames.saturating_sub(1)));
+        for frame in 1..self.frames {
+            let FrameStep {
+                substeps: n_sub,
+                reason,
+                stable,
+                max_speed,
+                speed,
+                unstable,
+            } = self.substeps(sim, state, frame)?;
+            let dt = spec.frame_dt / n_sub as f64;
+            if unstable {
+                let w = format!(
+                    "frame {frame}: `substeps` = {n_sub} gives dt = {dt:.3e} s (CFL number \
+                     {:.2}), above the largest step a fixed count may take, {:.3e} s \
+                     (allow_unstable)",
+                    stable.cfl_number(dt),
+                    stable.max_fixed_dt()
+                );
+                self.progress.log(&format!("warning: {w}"));
+                warnings.push(w);
+            }
+            let t0 = f64::from(frame - 1) * spec.frame_dt;
+            let stepping = Instant::now();
+            let rep = stepper.advance(t0, dt, n_sub);
+            substeps_s += stepping.elapsed().as_secs_f64();
+            let rep = rep.map_err(|source| {
+                let why = if unstable {
+                    " (the substep is above the stability limit: allow_unstable)"
+                } else {
+                    ""
+                };
+                SimulateError::Simulation {
+                    context: format!(
+                        "frame {frame} ({n_sub} substeps of {dt:.3e} s from t = {t0:.4} s){why}"
+                    ),
+                    source,
+                }
+            })?;
+            // The next frame's substeps need the velocities; the splats need `F` too.
+            let read = match self.gaussians {
+                Some(_) => stepper.read(state),
+                None => stepper.read_motion(state),
+            };
+            read.map_err(|source| SimulateError::Simulation {
+                context: format!("frame {frame}: reading the state"),
+                source,
+            })?;
+            let splats = self.gaussians.map(|g| {
+                let f = splat_deformation(spec.material.family, &state.f[..n_out]);
+                deform(g, &state.x[..n_out], &f)
+            });
+            let out = FrameOut::new(frame, &state.x[..n_out], &state.v[..n_out], splats);
+            if tx.send(ToWriter::Frame(Box::new(out))).is_err() {
+                return Ok(None);
+            }
+            self.progress.message(&format!(
+                "frame {frame}: {n_sub} substeps ({reason}), held {}",
+                rep.held
+            ));
+            self.progress.inc(1);
+            stats.push(FrameStats {
+                frame,
+                substeps: n_sub,
+                dt_s: dt,
+                substeps_reason: reason.to_string(),
+                binding_limit: stable.limit().to_string(),
+                stable_dt_s: stable.dt(),
+                max_fixed_dt_s: stable.max_fixed_dt(),
+                cfl_number: stable.cfl_number(dt),
+                max_speed_m_s: max_speed,
+                speed_bound_m_s: speed,
+                unstable,
+                held: rep.held,
+                max_held: rep.max_held,
+            });
+        }
+        Ok(Some(Done {
+            particles_out: n_out,
+            stats,
+            warnings,
+            setup_s,
+            substeps_s,
+        }))
     }
 }

@@ -51,17 +51,24 @@ impl Trajectories {
     /// The record batch of one frame: one row per particle, in order, from its positions (m)
     /// and velocities (m/s).
     pub fn frame_batch(frame: u16, x: &[[f32; 3]], v: &[[f32; 3]]) -> RecordBatch {
+        Self::batch(
+            UInt16Array::from_iter_values(std::iter::repeat_n(frame, x.len())),
+            UInt32Array::from_iter_values(0..x.len() as u32),
+            x,
+            v,
+        )
+    }
+
+    /// The record batch of these columns.
+    fn batch(frame: UInt16Array, id: UInt32Array, x: &[[f32; 3]], v: &[[f32; 3]]) -> RecordBatch {
         let comp = |src: &[[f32; 3]], a: usize| -> Arc<dyn arrow_array::Array> {
             Arc::new(Float32Array::from_iter_values(src.iter().map(|p| p[a])))
         };
         RecordBatch::try_new(
             Arc::new(Self::schema()),
             vec![
-                Arc::new(UInt16Array::from_iter_values(std::iter::repeat_n(
-                    frame,
-                    x.len(),
-                ))),
-                Arc::new(UInt32Array::from_iter_values(0..x.len() as u32)),
+                Arc::new(frame),
+                Arc::new(id),
                 comp(x, 0),
                 comp(x, 1),
                 comp(x, 2),
@@ -126,23 +133,12 @@ impl Table for Trajectories {
     }
 
     fn to_batch(&self) -> RecordBatch {
-        let comp = |src: &[[f32; 3]], a: usize| -> Arc<dyn arrow_array::Array> {
-            Arc::new(Float32Array::from_iter_values(src.iter().map(|p| p[a])))
-        };
-        RecordBatch::try_new(
-            Arc::new(Self::schema()),
-            vec![
-                Arc::new(UInt16Array::from(self.frame.clone())),
-                Arc::new(UInt32Array::from(self.id.clone())),
-                comp(&self.x, 0),
-                comp(&self.x, 1),
-                comp(&self.x, 2),
-                comp(&self.v, 0),
-                comp(&self.v, 1),
-                comp(&self.v, 2),
-            ],
+        Self::batch(
+            UInt16Array::from(self.frame.clone()),
+            UInt32Array::from(self.id.clone()),
+            &self.x,
+            &self.v,
         )
-        .expect("columns match the schema")
     }
 
     fn from_batch(b: &RecordBatch, _path: &Path) -> Result<Self, TableError> {

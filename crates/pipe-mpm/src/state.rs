@@ -504,14 +504,9 @@ impl MaterialGrad {
 
     /// All-zero gradient for `n` particles.
     pub fn zeros(n: usize) -> Self {
-        Self {
-            mass: vec![0.0; n],
-            volume: vec![0.0; n],
-            mu: vec![0.0; n],
-            lam: vec![0.0; n],
-            family: FamilyGrad::default(),
-            family_per_particle: Vec::new(),
-        }
+        let mut g = Self::default();
+        g.reset(n);
+        g
     }
 
     /// `(∂L/∂E, ∂L/∂ν)` for a uniform material with the given `E` (Pa), `ν`.

@@ -227,6 +227,10 @@ impl Gradients {
     /// The state and material gradients, owned (they are then not recycled).
     pub fn into_parts(mut self) -> (StateGrad, MaterialGrad) {
         self.pool = Weak::new();
+        self.take_arrays()
+    }
+
+    fn take_arrays(&mut self) -> GradArrays {
         (
             std::mem::take(&mut self.state),
             std::mem::take(&mut self.material),
@@ -236,14 +240,9 @@ impl Gradients {
 
 impl Drop for Gradients {
     fn drop(&mut self) {
-        let Some(pool) = self.pool.upgrade() else {
-            return;
-        };
-        let arrays: GradArrays = (
-            std::mem::take(&mut self.state),
-            std::mem::take(&mut self.material),
-        );
-        pool.put(arrays);
+        if let Some(pool) = self.pool.upgrade() {
+            pool.put(self.take_arrays());
+        }
     }
 }
 
