@@ -6,7 +6,9 @@
 //! schedule, [`super::schedule`]), so memory is O((n/every + snapshots) · particles) whatever
 //! the segment length. Short segments (≤ snapshots + 1 substeps) also keep each recomputed
 //! substep's intermediates (τ, groups, grid), so their adjoint steps skip the forward
-//! recomputation. Both run on the vectorised engine (`crate::wide::tape`), in the simulator's
+//! recomputation. The forward pass keeps what the last segment's reversal would recompute
+//! first (its first snapshots and, when short, its intermediates): the first backward pass
+//! through the tape takes them instead of recomputing. Both run on the vectorised engine (`crate::wide::tape`), in the simulator's
 //! [`crate::Precision`].
 
 use std::borrow::Cow;
@@ -252,7 +254,10 @@ impl<M: Constitutive> Simulator<M> {
     /// (when their groups have broken up), so a segment's recomputation runs in the forward's
     /// order. A dropped tape returns its checkpoint buffers to this simulator, and the next
     /// tape of the same particle count reuses them (an optimisation loop's tapes fault in no
-    /// fresh memory); they are freed with the simulator.
+    /// fresh memory); they are freed with the simulator. The tape also holds up to
+    /// [`SEGMENT_SNAPSHOTS`] states of its last segment (and, when that segment is at most
+    /// `SEGMENT_SNAPSHOTS + 1` substeps long, each substep's intermediates), which the first
+    /// backward pass takes instead of recomputing them.
     pub fn forward_tape(
         &self,
         state: &mut State,

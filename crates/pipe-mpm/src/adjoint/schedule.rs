@@ -55,6 +55,33 @@ impl Schedule {
     pub(crate) fn split(&self, k: usize, c: usize) -> usize {
         self.split[k * (self.max_c + 1) + c.min(self.max_c)] as usize
     }
+
+    /// What reversing substeps `lo..hi` from `lo` with `c` snapshots computes first: the
+    /// states at the outermost chain of splits (`m₁ = lo + split(hi − lo, c)`, then from `m₁`
+    /// with `c − 1`, … down to `hi − 1`) and, when the segment keeps its intermediates
+    /// (`hi − lo ≤ c + 1`), the substeps whose intermediates it keeps along that chain, `hi − 1`
+    /// included.
+    pub(crate) fn lead(&self, lo: usize, hi: usize, c: usize) -> (Vec<usize>, Vec<usize>) {
+        let (mut states, mut works) = (Vec::new(), Vec::new());
+        if hi <= lo {
+            return (states, works);
+        }
+        let keep = hi - lo <= c + 1;
+        let (mut a, mut free) = (lo, c);
+        while hi - a > 1 && free > 0 {
+            let m = a + self.split(hi - a, free);
+            states.push(m);
+            if keep && m == a + 1 {
+                works.push(a);
+            }
+            a = m;
+            free -= 1;
+        }
+        if keep {
+            works.push(hi - 1);
+        }
+        (states, works)
+    }
 }
 
 #[cfg(test)]
@@ -81,5 +108,19 @@ mod tests {
         assert_eq!(walk(&s, 50, 4), 144);
         assert_eq!(walk(&s, 270, 4), 1428);
         assert_eq!(walk(&s, 4, 4), 3);
+    }
+
+    #[test]
+    fn the_lead_is_the_outermost_chain() {
+        let s = Schedule::new(50, 4);
+        // A short segment is one chain of single substeps, each keeping its intermediates.
+        assert_eq!(s.lead(8, 12, 4), (vec![9, 10, 11], vec![8, 9, 10, 11]));
+        assert_eq!(s.lead(3, 4, 4), (vec![], vec![3]));
+        // A long one: at most `c` states, the last at `hi − 1`, no intermediates.
+        let (states, works) = s.lead(0, 50, 4);
+        assert!(states.len() <= 4 && works.is_empty(), "{states:?}");
+        assert_eq!(states.last(), Some(&49));
+        assert!(states.windows(2).all(|w| w[0] < w[1]));
+        assert_eq!(states[0], s.split(50, 4));
     }
 }

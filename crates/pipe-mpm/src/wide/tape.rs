@@ -9,9 +9,10 @@
 //! with at most `snapshots` of them alive (the binomial schedule of
 //! `crate::adjoint::schedule`) and keeping the intermediates of recomputed substeps when a
 //! segment fits in the snapshots; each reversed substep is the adjoint chain of
-//! [`super::adjoint`].
+//! [`super::adjoint`]. The forward pass keeps the [`Lead`] of the last segment's reversal, which
+//! the first backward pass takes instead of recomputing it.
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use glam::{DMat3, DVec3};
 use rayon::prelude::*;
@@ -25,7 +26,7 @@ use super::soa::{C, F, Soa, V};
 use super::{
     Buffers, Engine, G2P_CHUNK, STRESS_CHUNK, Work, chunk_cuts, fields, fields_mut, split_fields,
 };
-use crate::adjoint::schedule::Schedule;
+use crate::adjoint::schedule::{SEGMENT_SNAPSHOTS, Schedule};
 use crate::error::MpmError;
 use crate::grid::NodeBox;
 use crate::isa::Isa;
@@ -68,14 +69,79 @@ pub(crate) struct WideTape<T> {
     pub last: Checkpoint<T>,
     /// Position of the grid's first node (m): the states' positions are relative to it.
     pub origin: DVec3,
+    /// What the last segment's reversal starts with, computed as the forward pass ran it.
+    pub lead: LeadSlot<T>,
 }
 
 impl<T: Real> WideTape<T> {
-    /// The checkpoints' state buffers, leaving the tape empty.
+    /// The checkpoints' state buffers (and the lead's, when no backward pass took it),
+    /// leaving the tape empty.
     pub fn take_buffers(&mut self) -> Vec<Soa<T>> {
         let mut out: Vec<Soa<T>> = self.checkpoints.drain(..).map(|c| c.p).collect();
         out.push(std::mem::replace(&mut self.last.p, Soa::empty()));
+        out.extend(self.lead.take().states.into_iter().map(|(_, p)| p));
         out
+    }
+}
+
+/// The start of the last segment's reversal, which the forward pass computes anyway as it runs
+/// that segment: the states the backward pass's schedule recomputes first (its outermost chain,
+/// [`Schedule::lead`], at the default [`SEGMENT_SNAPSHOTS`]) and, in a short segment, each
+/// substep's intermediates. The backward pass looks a state up by its substep (a state of the
+/// run is the same whichever state it is recomputed from), so any schedule may use them.
+#[derive(Debug)]
+pub(crate) struct Lead<T> {
+    /// `(k, state at substep k)`.
+    states: Vec<(usize, Soa<T>)>,
+    /// `(k, intermediates of substep k)`.
+    works: Vec<(usize, Work<T>)>,
+}
+
+impl<T> Default for Lead<T> {
+    fn default() -> Self {
+        Self {
+            states: Vec::new(),
+            works: Vec::new(),
+        }
+    }
+}
+
+impl<T> Lead<T> {
+    fn take_state(&mut self, k: usize) -> Option<Soa<T>> {
+        let i = self.states.iter().position(|(j, _)| *j == k)?;
+        Some(self.states.swap_remove(i).1)
+    }
+
+    fn take_work(&mut self, k: usize) -> Option<Work<T>> {
+        let i = self.works.iter().position(|(j, _)| *j == k)?;
+        Some(self.works.swap_remove(i).1)
+    }
+}
+
+/// A tape's [`Lead`], taken by the first backward pass through it (its buffers then serve the
+/// other segments' recomputation, so the lead adds nothing to the backward pass's peak
+/// memory); a cloned tape has none.
+#[derive(Debug)]
+pub(crate) struct LeadSlot<T>(Mutex<Option<Lead<T>>>);
+
+impl<T> LeadSlot<T> {
+    fn new(lead: Lead<T>) -> Self {
+        Self(Mutex::new(Some(lead)))
+    }
+
+    /// The lead, leaving none (empty when taken before).
+    pub fn take(&self) -> Lead<T> {
+        self.0
+            .lock()
+            .ok()
+            .and_then(|mut l| l.take())
+            .unwrap_or_default()
+    }
+}
+
+impl<T> Clone for LeadSlot<T> {
+    fn clone(&self) -> Self {
+        Self(Mutex::new(None))
     }
 }
 
@@ -108,6 +174,17 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
     let mut pool: Vec<Soa<T>> = sim.tape_pool.0.take::<Vec<Soa<T>>>().unwrap_or_default();
     pool.retain(|b| b.n == e.p.n && b.stride == e.p.stride);
     let mut checkpoints = Vec::with_capacity(n_substeps.div_ceil(every));
+    // The last segment's lead, in buffers the last backward pass released.
+    let last_lo = n_substeps.saturating_sub(1) / every * every;
+    let (lead_states, lead_works) = Schedule::new(every.min(n_substeps.max(1)), SEGMENT_SNAPSHOTS)
+        .lead(last_lo, n_substeps, SEGMENT_SNAPSHOTS);
+    let mut back = sim.adjoint_cache.take::<BackCache<T>>();
+    let (mut spare_soas, mut spare_works) = match back.as_mut() {
+        Some(b) => (std::mem::take(&mut b.soas), std::mem::take(&mut b.works)),
+        None => (Vec::new(), Vec::new()),
+    };
+    spare_soas.retain(|b| b.n == e.p.n && b.stride == e.p.stride);
+    let mut lead = Lead::default();
     // The slot order, shared by the checkpoints between re-sorts.
     let mut ids: Arc<[u32]> = e.ids.as_slice().into();
     for k in 0..n_substeps {
@@ -122,11 +199,33 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
                 ids: Arc::clone(&ids),
             });
         }
+        // Keeping a substep's intermediates changes none of its arithmetic.
+        e.keep = lead_works.contains(&k);
+        if e.keep {
+            e.b.work
+                .fit(e.p.n, &sim.grid, true, Engine::<T, M>::KEEP_TAU);
+        }
         let outcome = e.step(t0 + k as f64 * sim.config.dt);
         if let Err(err) = e.record(k, outcome, rep) {
             e.write_back(state);
             return Err(err);
         }
+        if e.keep {
+            let spare = spare_works.pop().unwrap_or_default();
+            lead.works.push((k, e.take_work(spare)));
+        }
+        if lead_states.contains(&(k + 1)) {
+            let p = match spare_soas.pop() {
+                Some(b) => kept_copy(&mut vec![b], &e.p),
+                None => kept_copy(&mut pool, &e.p),
+            };
+            lead.states.push((k + 1, p));
+        }
+    }
+    e.keep = false;
+    if let Some(mut b) = back {
+        (b.soas, b.works) = (spare_soas, spare_works);
+        sim.adjoint_cache.put(b);
     }
     let last = Checkpoint {
         p: kept_copy(&mut pool, &e.p),
@@ -140,6 +239,7 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
         checkpoints,
         last,
         origin,
+        lead: LeadSlot::new(lead),
     })
 }
 
@@ -677,6 +777,7 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
             .collect(),
         spare_work: std::mem::take(&mut cache.works),
         keep: false,
+        lead: tape.lead.take(),
     };
     for (j, ck) in tape.checkpoints.iter().enumerate().rev() {
         let lo = j * every;
@@ -709,6 +810,11 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
         rev.segment(&mut ctx, lo, hi)?;
     }
     acc.add_into(&acc_ids, &mut gmat);
+    // What a truncated pass did not use of the lead.
+    let lead = std::mem::take(&mut rev.lead);
+    rev.spare.extend(lead.states.into_iter().map(|(_, p)| p));
+    rev.spare_work
+        .extend(lead.works.into_iter().map(|(_, w)| w));
     if M::HAS_FAMILY_PARAMS && gmat.family_per_particle.is_empty() {
         gmat.family_per_particle = vec![FamilyGrad::default(); np];
     }
@@ -751,6 +857,9 @@ struct Reverser<'p, T> {
     spare_work: Vec<Work<T>>,
     /// Keep each recomputed substep's intermediates (segments of ≤ snapshots + 1).
     keep: bool,
+    /// The forward pass's start of the last segment's reversal: states and intermediates
+    /// taken instead of recomputed.
+    lead: Lead<T>,
 }
 
 impl<T: Precise> Reverser<'_, T> {
@@ -788,6 +897,18 @@ impl<T: Precise> Reverser<'_, T> {
         to: usize,
         keep: bool,
     ) -> Option<Work<T>> {
+        if let Some(p) = self.lead.take_state(to) {
+            let work = if keep {
+                self.lead.take_work(from)
+            } else {
+                None
+            };
+            if work.is_some() || !keep {
+                self.stack.push(p);
+                return work;
+            }
+            self.spare.push(p);
+        }
         let base = self.stack.last().unwrap_or(&c.ck.p);
         // The first substep reads the base and writes every field of the new buffer (no copy).
         let mut buf = self.spare.pop().unwrap_or_else(|| Soa::new(base.n));
@@ -849,7 +970,8 @@ impl<T: Precise> Reverser<'_, T> {
     ) -> Result<(), MpmError> {
         let t = self.t0 + k as f64 * self.dt;
         let s = self.stack.last().unwrap_or(&c.ck.p);
-        let work = match kept {
+        let lead = kept.is_none().then(|| self.lead.take_work(k)).flatten();
+        let work = match kept.or(lead.as_ref()) {
             Some(w) => w,
             None => {
                 // Recompute the substep's intermediates from `s` (the new F goes to the
@@ -860,6 +982,7 @@ impl<T: Precise> Reverser<'_, T> {
             }
         };
         let bad = adjoint_step(c.e, s, work, c.g, c.acc, c.adj);
+        self.spare_work.extend(lead);
         if bad && let Some((quantity, particle)) = first_non_finite(c.g, &c.ck.ids) {
             return Err(MpmError::NonFinite {
                 substep: k,
