@@ -1,11 +1,14 @@
 //! Nearest-neighbour queries on a hash grid: the particle spacing of an input cloud and the
 //! Chamfer distance between two clouds.
 //!
-//! Points are bucketed into cubic cells of side `h` (a `HashMap` from integer cell to point
-//! indices, hashed with `foldhash`'s fixed-seed hasher: std's SipHash took most of a query). A query walks shells of cells at growing Chebyshev distance `r` from its own cell
-//! and stops once the best distance found is at most `r·h` (no point in a farther shell can be
-//! closer); when a shell would hold more cells than the grid has occupied cells it scans the
-//! occupied cells directly, so a far query costs O(occupied cells), never more.
+//! Points are bucketed into cubic cells of side `h`: a `HashMap` from integer cell to the range
+//! of its points in a copy of the points ordered by cell (hashed with `foldhash`'s fixed-seed
+//! hasher: std's SipHash took most of a query; one allocation for all cells instead of one per
+//! cell, and a cell's points side by side in memory). A query walks shells of cells at growing
+//! Chebyshev distance `r` from its own cell and stops once the best distance found is at most
+//! `r·h` (no point in a farther shell can be closer); when a shell would hold more cells than the
+//! grid has occupied cells it scans the occupied cells directly, so a far query costs O(occupied
+//! cells), never more.
 
 use std::collections::HashMap;
 
@@ -14,26 +17,52 @@ use foldhash::fast::FixedState;
 use glam::{DVec3, IVec3};
 use rayon::prelude::*;
 
-/// Integer cell → indices of the points in it.
-pub type CellMap = HashMap<IVec3, Vec<u32>, FixedState>;
+/// Integer cell → `(first, count)`: its points are `first..first + count` of the grid's order.
+pub type CellMap = HashMap<IVec3, (u32, u32), FixedState>;
 
 /// Points bucketed by cell.
 #[derive(Debug, Clone)]
-pub struct PointGrid<'a> {
-    points: &'a [DVec3],
+pub struct PointGrid {
     h: f64,
     cells: CellMap,
+    /// Point indices, cell by cell (in index order within a cell).
+    order: Vec<u32>,
+    /// The points in that order (m).
+    sorted: Vec<DVec3>,
 }
 
-impl<'a> PointGrid<'a> {
+impl PointGrid {
     /// Buckets `points` (m) into cells of side `h` (m, > 0).
-    pub fn new(points: &'a [DVec3], h: f64) -> Self {
+    pub fn new(points: &[DVec3], h: f64) -> Self {
         assert!(h.is_finite() && h > 0.0, "cell size must be > 0, got {h}");
-        let mut cells = CellMap::default();
-        for (i, &p) in points.iter().enumerate() {
-            cells.entry(cell_of(p, h)).or_default().push(i as u32);
+        let keys: Vec<IVec3> = points.iter().map(|&p| cell_of(p, h)).collect();
+        // A counting sort: count each cell's points, give each cell its range, place the points
+        // (in index order within a cell).
+        let mut cells = CellMap::with_capacity_and_hasher(points.len() / 2, FixedState::default());
+        for k in &keys {
+            cells.entry(*k).or_insert((0, 0)).1 += 1;
         }
-        Self { points, h, cells }
+        let mut first = 0u32;
+        for v in cells.values_mut() {
+            let n = v.1;
+            *v = (first, 0);
+            first += n;
+        }
+        let mut order = vec![0u32; points.len()];
+        let mut sorted = vec![DVec3::ZERO; points.len()];
+        for (i, k) in keys.iter().enumerate() {
+            let v = cells.get_mut(k).expect("every key was counted");
+            let at = (v.0 + v.1) as usize;
+            v.1 += 1;
+            order[at] = i as u32;
+            sorted[at] = points[i];
+        }
+        Self {
+            h,
+            cells,
+            order,
+            sorted,
+        }
     }
 
     /// Cell side (m).
@@ -41,7 +70,7 @@ impl<'a> PointGrid<'a> {
         self.h
     }
 
-    /// Occupied cells and the indices of their points.
+    /// Occupied cells and the ranges of their points.
     pub fn cells(&self) -> &CellMap {
         &self.cells
     }
@@ -56,13 +85,14 @@ impl<'a> PointGrid<'a> {
     pub fn nearest(&self, q: DVec3, skip: Option<usize>) -> Option<(usize, f64)> {
         let c = self.cell(q);
         let mut best: Option<(usize, f64)> = None;
-        let consider = |idx: &[u32], best: &mut Option<(usize, f64)>| {
-            for &j in idx {
+        let consider = |&(first, n): &(u32, u32), best: &mut Option<(usize, f64)>| {
+            let r = first as usize..(first + n) as usize;
+            for (&j, &p) in self.order[r.clone()].iter().zip(&self.sorted[r]) {
                 let j = j as usize;
                 if Some(j) == skip {
                     continue;
                 }
-                let d2 = (self.points[j] - q).length_squared();
+                let d2 = (p - q).length_squared();
                 if skip.is_some() && d2 == 0.0 {
                     continue;
                 }
@@ -76,16 +106,16 @@ impl<'a> PointGrid<'a> {
             let side = (2 * r + 1) as f64;
             if r > 1 && side * side * side > occupied as f64 {
                 // The shell is larger than the occupied set: scan that instead.
-                for (cell, idx) in &self.cells {
+                for (cell, range) in &self.cells {
                     if (*cell - c).abs().max_element() >= r {
-                        consider(idx, &mut best);
+                        consider(range, &mut best);
                     }
                 }
                 break;
             }
             for_shell(c, r, |cell| {
-                if let Some(idx) = self.cells.get(&cell) {
-                    consider(idx, &mut best);
+                if let Some(range) = self.cells.get(&cell) {
+                    consider(range, &mut best);
                 }
             });
             if let Some((_, d2)) = best
@@ -96,6 +126,15 @@ impl<'a> PointGrid<'a> {
         }
         best.map(|(j, d2)| (j, d2.sqrt()))
     }
+}
+
+/// Points of `points` (m) per occupied cell of side `h` (m).
+fn count_cells(points: &[DVec3], h: f64) -> HashMap<IVec3, u32, FixedState> {
+    let mut counts = HashMap::with_capacity_and_hasher(points.len() / 8, FixedState::default());
+    for &p in points {
+        *counts.entry(cell_of(p, h)).or_insert(0) += 1;
+    }
+    counts
 }
 
 fn cell_of(p: DVec3, h: f64) -> IVec3 {
@@ -196,19 +235,18 @@ pub fn particle_spacing(points: &[DVec3]) -> Option<Spacing> {
     }
     for factor in [4.0, 3.0] {
         let h = factor * median_nn;
-        let grid = PointGrid::new(points, h);
-        let occupied: Vec<(&IVec3, &Vec<u32>)> = grid.cells().iter().collect();
+        let counts = count_cells(points, h);
+        let occupied: Vec<(&IVec3, &u32)> = counts.iter().collect();
         let (cells, count) = occupied
             .par_iter()
             .filter(|(c, _)| {
                 (-1..=1).all(|dx| {
                     (-1..=1).all(|dy| {
-                        (-1..=1)
-                            .all(|dz| grid.cells().contains_key(&(**c + IVec3::new(dx, dy, dz))))
+                        (-1..=1).all(|dz| counts.contains_key(&(**c + IVec3::new(dx, dy, dz))))
                     })
                 })
             })
-            .map(|(_, idx)| (1usize, idx.len()))
+            .map(|(_, n)| (1usize, **n as usize))
             .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
         if cells >= 8 {
             let volume_per_particle = cells as f64 * h * h * h / count as f64;
