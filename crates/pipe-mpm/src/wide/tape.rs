@@ -779,6 +779,15 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
         keep: false,
         lead: tape.lead.take(),
     };
+    // The lead follows the default schedule of a whole pass; another schedule would find few
+    // of its states and hold them besides its own (its buffers still serve as snapshots).
+    let last_lo = n_substeps.saturating_sub(1) / every * every;
+    if snapshots != SEGMENT_SNAPSHOTS || start > last_lo {
+        let lead = std::mem::take(&mut rev.lead);
+        let room = snapshots.saturating_sub(rev.spare.len());
+        rev.spare
+            .extend(lead.states.into_iter().take(room).map(|(_, p)| p));
+    }
     for (j, ck) in tape.checkpoints.iter().enumerate().rev() {
         let lo = j * every;
         let hi = (lo + every).min(n_substeps);
