@@ -208,6 +208,7 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
         let outcome = e.step(t0 + k as f64 * sim.config.dt);
         if let Err(err) = e.record(k, outcome, rep) {
             e.write_back(state);
+            give_back(sim, back, spare_soas, spare_works);
             return Err(err);
         }
         if e.keep {
@@ -215,18 +216,16 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
             lead.works.push((k, e.take_work(spare)));
         }
         if lead_states.contains(&(k + 1)) {
-            let p = match spare_soas.pop() {
-                Some(b) => kept_copy(&mut vec![b], &e.p),
-                None => kept_copy(&mut pool, &e.p),
+            let from = if spare_soas.is_empty() {
+                &mut pool
+            } else {
+                &mut spare_soas
             };
-            lead.states.push((k + 1, p));
+            lead.states.push((k + 1, kept_copy(from, &e.p)));
         }
     }
     e.keep = false;
-    if let Some(mut b) = back {
-        (b.soas, b.works) = (spare_soas, spare_works);
-        sim.adjoint_cache.put(b);
-    }
+    give_back(sim, back, spare_soas, spare_works);
     let last = Checkpoint {
         p: kept_copy(&mut pool, &e.p),
         ids,
@@ -241,6 +240,20 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
         origin,
         lead: LeadSlot::new(lead),
     })
+}
+
+/// Returns the spare buffers a forward pass did not use to the backward pass's cache `back`
+/// (taken from `sim`).
+fn give_back<T: Real, M: Constitutive>(
+    sim: &Simulator<M>,
+    back: Option<BackCache<T>>,
+    soas: Vec<Soa<T>>,
+    works: Vec<Work<T>>,
+) {
+    if let Some(mut b) = back {
+        (b.soas, b.works) = (soas, works);
+        sim.adjoint_cache.put(b);
+    }
 }
 
 /// The backward pass's arrays, kept by the simulator between passes (as [`Buffers`] for
