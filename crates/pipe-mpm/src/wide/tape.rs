@@ -71,6 +71,9 @@ pub(crate) struct WideTape<T> {
     pub origin: DVec3,
     /// What the last segment's reversal starts with, computed as the forward pass ran it.
     pub lead: LeadSlot<T>,
+    /// The schedule of a segment at the default [`SEGMENT_SNAPSHOTS`] (tabulating it costs
+    /// O(every²), so the backward pass reuses it).
+    pub schedule: Arc<Schedule>,
 }
 
 impl<T: Real> WideTape<T> {
@@ -176,8 +179,11 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
     let mut checkpoints = Vec::with_capacity(n_substeps.div_ceil(every));
     // The last segment's lead, in buffers the last backward pass released.
     let last_lo = n_substeps.saturating_sub(1) / every * every;
-    let (lead_states, lead_works) = Schedule::new(every.min(n_substeps.max(1)), SEGMENT_SNAPSHOTS)
-        .lead(last_lo, n_substeps, SEGMENT_SNAPSHOTS);
+    let schedule = Arc::new(Schedule::new(
+        every.min(n_substeps.max(1)),
+        SEGMENT_SNAPSHOTS,
+    ));
+    let (lead_states, lead_works) = schedule.lead(last_lo, n_substeps, SEGMENT_SNAPSHOTS);
     let mut back = sim.adjoint_cache.take::<BackCache<T>>();
     let (mut spare_soas, mut spare_works) = match back.as_mut() {
         Some(b) => (std::mem::take(&mut b.soas), std::mem::take(&mut b.works)),
@@ -239,6 +245,7 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
         last,
         origin,
         lead: LeadSlot::new(lead),
+        schedule,
     })
 }
 
@@ -775,7 +782,11 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
     // sequence whatever the checkpoint interval.
     let mut acc = MatAcc::zeroed(cache.acc.take(), tape.last.p.stride, M::HAS_FAMILY_PARAMS);
     let mut acc_ids = tape.last.ids.to_vec();
-    let plan = Schedule::new(every.min(n_substeps.max(1)), snapshots);
+    let plan = if snapshots == SEGMENT_SNAPSHOTS {
+        Arc::clone(&tape.schedule)
+    } else {
+        Arc::new(Schedule::new(every.min(n_substeps.max(1)), snapshots))
+    };
     let mut adj = std::mem::take(&mut cache.adj);
     let mut rev = Reverser {
         t0,
