@@ -18,7 +18,7 @@ use glam::{DVec3, IVec3};
 use rayon::prelude::*;
 
 /// Integer cell → `(first, count)`: its points are `first..first + count` of the grid's order.
-pub type CellMap = HashMap<IVec3, (u32, u32), FixedState>;
+type CellMap = HashMap<IVec3, (u32, u32), FixedState>;
 
 /// Points bucketed by cell.
 #[derive(Debug, Clone)]
@@ -68,11 +68,6 @@ impl PointGrid {
     /// Cell side (m).
     pub fn cell_size(&self) -> f64 {
         self.h
-    }
-
-    /// Occupied cells and the ranges of their points.
-    pub fn cells(&self) -> &CellMap {
-        &self.cells
     }
 
     /// The cell holding `p`.

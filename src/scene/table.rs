@@ -8,7 +8,6 @@ use std::fs::File;
 use std::io::BufWriter;
 use std::marker::PhantomData;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 use arrow_array::{Array, RecordBatch};
 use arrow_ipc::reader::FileReader;
@@ -181,7 +180,7 @@ impl<T: Table> Writer<T> {
 
     /// Closes the file and moves it to `path`.
     pub fn finish(mut self) -> Result<(), TableError> {
-        let closed = self.ipc(&Arc::new(T::schema())).and_then(|w| w.finish());
+        let closed = self.ipc(&T::schema()).and_then(|w| w.finish());
         let closed = closed.and_then(|()| {
             let ipc = self.ipc.take().expect("opened above");
             let buffered = ipc.into_inner()?;

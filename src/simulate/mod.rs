@@ -26,6 +26,7 @@ pub mod setup;
 pub mod spec;
 
 use std::path::{Path, PathBuf};
+use std::sync::mpsc::SyncSender;
 use std::time::Instant;
 
 use glam::{DMat3, DVec3};
@@ -37,7 +38,6 @@ use pipe_mpm::{
 use output::{FrameOut, ToWriter};
 pub use output::{FrameStats, Summary, Timing, Trajectories};
 pub use spec::{SimSpec, load_spec};
-use std::sync::mpsc::SyncSender;
 
 use crate::io::ply::{self, PlyError};
 use crate::pipeline::progress::Progress;

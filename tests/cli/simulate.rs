@@ -95,6 +95,16 @@ fn centroid(x: &[DVec3]) -> DVec3 {
     x.iter().copied().sum::<DVec3>() / x.len() as f64
 }
 
+/// The names in folder `dir`, sorted.
+fn names_in(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    names.sort();
+    names
+}
+
 /// The documented SIM.yaml, verbatim, on a 10³ lattice 1 cm apart (8 particles per 2 cm cell,
 /// as the file's `particle_volume` and `grid_dx` assume), 10 cm above the ground.
 #[test]
@@ -106,11 +116,7 @@ fn example_sim_yaml_on_a_lattice() {
     let s = simulate::run(&ply_in, &fixture("example.sim.yaml"), 14, &out, &quiet()).unwrap();
 
     // Files: frame_0000 … frame_0013, the table, the summary; nothing else, no temporaries.
-    let mut names: Vec<String> = std::fs::read_dir(&out)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().into_string().unwrap())
-        .collect();
-    names.sort();
+    let names = names_in(&out);
     let mut expected: Vec<String> = (0..14).map(|k| format!("frame_{k:04}.ply")).collect();
     expected.extend(["particles.arrow".into(), "summary.json".into()]);
     assert_eq!(names, expected);
@@ -420,10 +426,7 @@ fn a_fixed_step_divergence_without_nan_is_stopped() {
     );
     // The frames before it stay; the table, written as the run went, is not left behind,
     // complete-looking or temporary.
-    let names: Vec<String> = std::fs::read_dir(tmp.path().join("out"))
-        .unwrap()
-        .map(|e| e.unwrap().file_name().into_string().unwrap())
-        .collect();
+    let names = names_in(&tmp.path().join("out"));
     assert!(names.contains(&"frame_0001.ply".to_string()), "{names:?}");
     assert!(
         names
@@ -446,11 +449,7 @@ fn a_frame_that_cannot_be_written_stops_the_run() {
     let e = simulate::run(&ply_in, &fixture("example.sim.yaml"), 8, &out, &quiet()).unwrap_err();
     let msg = e.to_string();
     assert!(msg.contains("frame_0003.ply"), "{msg}");
-    let mut names: Vec<String> = std::fs::read_dir(&out)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().into_string().unwrap())
-        .collect();
-    names.sort();
+    let names = names_in(&out);
     assert_eq!(
         names,
         [

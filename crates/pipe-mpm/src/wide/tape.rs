@@ -148,6 +148,11 @@ impl<T> Clone for LeadSlot<T> {
     }
 }
 
+/// First substep of the last segment of `n_substeps` checkpointed every `every`.
+fn last_segment_start(n_substeps: usize, every: usize) -> usize {
+    n_substeps.saturating_sub(1) / every * every
+}
+
 /// A copy of `src` in a buffer of `pool` (a dropped tape's), else in a new one.
 fn kept_copy<T: Real>(pool: &mut Vec<Soa<T>>, src: &Soa<T>) -> Soa<T> {
     match pool.pop() {
@@ -178,7 +183,7 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
     pool.retain(|b| b.n == e.p.n && b.stride == e.p.stride);
     let mut checkpoints = Vec::with_capacity(n_substeps.div_ceil(every));
     // The last segment's lead, in buffers the last backward pass released.
-    let last_lo = n_substeps.saturating_sub(1) / every * every;
+    let last_lo = last_segment_start(n_substeps, every);
     let schedule = Arc::new(Schedule::new(
         every.min(n_substeps.max(1)),
         SEGMENT_SNAPSHOTS,
@@ -805,7 +810,7 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
     };
     // The lead follows the default schedule of a whole pass; another schedule would find few
     // of its states and hold them besides its own (its buffers still serve as snapshots).
-    let last_lo = n_substeps.saturating_sub(1) / every * every;
+    let last_lo = last_segment_start(n_substeps, every);
     if snapshots != SEGMENT_SNAPSHOTS || start > last_lo {
         let lead = std::mem::take(&mut rev.lead);
         let room = snapshots.saturating_sub(rev.spare.len());
