@@ -6,7 +6,8 @@
 //! 2. the particles are read from any point-cloud or 3DGS PLY (`x y z`);
 //! 3. [`setup::setup`] resolves the defaults: particle spacing (hash-grid density, see
 //!    [`crate::scene::neighbors::particle_spacing`]), `grid_dx = 2·spacing`, `particle_volume = spacing³`,
-//!    and a domain covering where the particles can go; a surface-like cloud (3DGS splats)
+//!    and the grid (following the particles unless the file declares a `domain`); a
+//!    surface-like cloud (3DGS splats)
 //!    gets `grid_dx` from its size instead and is filled with particles inside ([`fill`]);
 //! 4. the family picks one monomorphised `pipe_mpm::Simulator`; every frame takes the
 //!    substeps the stability limit needs at its start (recomputed from the largest speed), or
@@ -16,9 +17,10 @@
 //! 5. [`output`] writes `frame_NNNN.ply` per frame (frame 0 = input), `particles.arrow` and
 //!    `summary.json`, each atomically; the summary is written last.
 //!
-//! The particle count never changes: particles that reach the domain edge are held there by
-//! the walls and counted per frame (`held`). Fillers are simulated after the input particles
-//! and never written.
+//! The particle count never changes: without `domain` the grid follows the particles and
+//! nothing but the declared boundaries acts on them; with one, particles that reach its edge
+//! are held there by the walls and counted per frame (`held`, `contacts`). Fillers are
+//! simulated after the input particles and never written.
 
 pub mod fill;
 pub mod output;
@@ -31,8 +33,8 @@ use std::time::Instant;
 
 use glam::{DMat3, DVec3};
 use pipe_mpm::{
-    Boundaries, BoundaryKind, Constitutive, Material, ModelVisitor, MpmError, SimConfig, Simulator,
-    StableStep, State, StepLimits, Stepper, speed_bound, stable_step_at_speed,
+    Boundaries, BoundaryKind, Constitutive, Domain, Material, ModelVisitor, MpmError, SimConfig,
+    Simulator, StableStep, State, StepLimits, Stepper, speed_bound, stable_step_at_speed,
 };
 
 use output::{FrameOut, ToWriter};
@@ -150,7 +152,7 @@ pub enum SimulateError {
     /// With a fixed substep count, particles move more than a cell per substep: the run has
     /// diverged (even with `allow_unstable`).
     #[error(
-        "the run has diverged by the start of frame {frame}: particles move at up to {speed:.3e} m/s, \
+        "the run diverged by frame {frame}: particles move at up to {speed:.3e} m/s, \
          {cells:.3e} grid cells per substep (MPM needs well under one); `substeps` is too small \
          for this material (leave it out to choose the substeps automatically)"
     )]
@@ -272,32 +274,14 @@ pub fn run_with(
         .as_ref()
         .map_or_else(Vec::new, |g| fill_splats(g, n));
     let gaussians = gaussians.filter(|_| options.splats);
-    let setup = setup::setup(&spec, particles, (&x0, &splats), frames)?;
-    let n_all = n + setup.fill.len();
-    let mut mat = spec
-        .material
-        .material(n_all, setup.particle_volume)
-        .map_err(|source| SimulateError::Simulation {
-            context: format!("material from {}", spec.file.display()),
-            source,
-        })?;
-    // The fillers (after the input particles) have their own volume and mass.
-    mat.volume[n..].fill(setup.fill_volume);
-    mat.mass[n..].fill(spec.material.density * setup.fill_volume);
-    let mut x_all = x0;
-    x_all.extend_from_slice(&setup.fill);
-    let mut state = State::at_rest(x_all);
-    let v0 = DVec3::from_array(spec.initial_velocity);
-    state.v.iter_mut().for_each(|v| *v = v0);
-    for w in &setup.warnings {
+    let body = Body::new(&spec, particles, x0, &splats, frames)?;
+    for w in &body.setup.warnings {
         progress.log(&format!("warning: {w}"));
     }
+    let setup = body.setup.clone();
     let job = Job {
         spec: &spec,
-        setup: &setup,
-        state,
-        mat,
-        n_input: n,
+        body,
         frames,
         out,
         progress,
@@ -336,13 +320,13 @@ pub fn run_with(
         fill: setup.fill_source.clone(),
         fill_particles: setup.fill.len(),
         fill_particle_volume_m3: setup.fill_volume,
-        domain: spec::BoxSpec {
-            min: setup.domain.lo.to_array(),
-            max: setup.domain.hi.to_array(),
-        },
+        domain: setup.domain.map(|d| spec::BoxSpec {
+            min: d.lo.to_array(),
+            max: d.hi.to_array(),
+        }),
         domain_source: setup.domain_source.clone(),
-        grid_nodes: setup::grid_nodes(&setup.domain, setup.dx),
-        boundaries: setup::describe_boundaries(&spec.boundaries),
+        grid_nodes: setup.domain.map(|d| setup::grid_nodes(&d, setup.dx)),
+        boundaries: setup::describe_boundaries(&spec.boundaries, setup.domain.is_some()),
         forces: setup.forces.len(),
         gravity: spec.gravity,
         initial_velocity: spec.initial_velocity,
@@ -365,6 +349,85 @@ pub fn run_with(
     };
     output::write_summary(out, &summary)?;
     Ok(summary)
+}
+
+/// A particle cloud made ready to simulate: the settings [`setup::setup`] resolved, the state
+/// (the input particles, then the fillers of a closed surface, all at the file's initial
+/// velocity) and the per-particle material. `pipe simulate` and the physics stages build
+/// their bodies here.
+#[derive(Debug, Clone)]
+pub struct Body {
+    /// Resolved settings.
+    pub setup: Setup,
+    /// The initial state: input particles first, fillers after.
+    pub state: State,
+    /// The file's material per particle (fillers have their own volume and mass).
+    pub material: Material,
+    /// Input particles (the first ones of `state`).
+    pub n_input: usize,
+}
+
+impl Body {
+    /// The body of the particles `x0` (m, read from `source`, with their 3DGS `splats` when
+    /// they are splats) under `spec`, simulated for `frames` frames.
+    pub fn new(
+        spec: &SimSpec,
+        source: &Path,
+        x0: Vec<DVec3>,
+        splats: &[Splat],
+        frames: u32,
+    ) -> Result<Self, SimulateError> {
+        let n = x0.len();
+        let setup = setup::setup(spec, source, (&x0, splats), frames)?;
+        let n_all = n + setup.fill.len();
+        let mut material = spec
+            .material
+            .material(n_all, setup.particle_volume)
+            .map_err(|source| SimulateError::Simulation {
+                context: format!("material from {}", spec.file.display()),
+                source,
+            })?;
+        // The fillers (after the input particles) have their own volume and mass.
+        material.volume[n..].fill(setup.fill_volume);
+        material.mass[n..].fill(spec.material.density * setup.fill_volume);
+        let mut x_all = x0;
+        x_all.extend_from_slice(&setup.fill);
+        let mut state = State::at_rest(x_all);
+        let v0 = DVec3::from_array(spec.initial_velocity);
+        state.v.iter_mut().for_each(|v| *v = v0);
+        Ok(Self {
+            setup,
+            state,
+            material,
+            n_input: n,
+        })
+    }
+
+    /// The simulator settings of this body under `spec`: its grid (following the particles,
+    /// or the file's domain with walls), gravity, colliders and forces, in `precision`; the
+    /// substep is the frame's, until [`frame_step`] sets it.
+    pub fn config(&self, spec: &SimSpec, precision: pipe_mpm::Precision) -> SimConfig {
+        let setup = &self.setup;
+        let mut cfg = match setup.domain {
+            Some(domain) => SimConfig::new(domain, setup.dx, spec.frame_dt),
+            None => {
+                let mut c = SimConfig::following(setup.dx, spec.frame_dt);
+                c.domain = Domain::Follow {
+                    max_nodes: setup::FOLLOW_NODES,
+                };
+                c
+            }
+        };
+        cfg.gravity = DVec3::from_array(spec.gravity);
+        cfg.margin = setup::GRID_MARGIN;
+        cfg.boundaries = Boundaries {
+            colliders: setup.colliders.clone(),
+            walls: setup.domain.map(|_| BoundaryKind::Separate),
+        };
+        cfg.forces = setup.forces.clone();
+        cfg.precision = precision;
+        cfg
+    }
 }
 
 /// The splats of a 3DGS PLY's `n` Gaussians (`scale_*`, `rot_*`, `opacity` beside `x y z`),
@@ -400,14 +463,124 @@ fn splat_deformation(
     }
 }
 
+/// The substeps of frame `frame` (1-based) about to start from `state` with material `mat`,
+/// or the refusal: the file's fixed `substeps`, or those the stability limit needs. The limits hold for the
+/// particles' speed at the frame's start plus what this frame's forces and impulses can add
+/// ([`pipe_mpm::speed_bound`]).
+pub fn frame_step<M: Constitutive>(
+    spec: &SimSpec,
+    body: &Body,
+    mat: &Material,
+    sim: &Simulator<M>,
+    state: &State,
+    frame: u32,
+) -> Result<FrameStep, SimulateError> {
+    let frame_dt = spec.frame_dt;
+    let t0 = f64::from(frame - 1) * frame_dt;
+    let max_speed = state.v.iter().map(|v| v.length()).fold(0.0, f64::max);
+    let speed = speed_bound(
+        &state.v,
+        &mat.mass,
+        &body.setup.forces,
+        t0,
+        t0 + frame_dt,
+    );
+    let stable = stable_step_at_speed(
+        sim.model(),
+        mat,
+        speed,
+        body.setup.dx,
+        StepLimits::default(),
+    );
+    let Some(user) = spec.substeps else {
+        let n = stable.substeps_per_frame(frame_dt);
+        if n > MAX_SUBSTEPS_PER_FRAME {
+            let cause = if speed > max_speed * (1.0 + 1e-9) + 1e-12 {
+                "a force or impulse is too strong for this material (see `forces`)".into()
+            } else if frame == 1 {
+                format!(
+                    "`frame_dt` = {} s in {} is too long for this material, grid and \
+                     initial speed: a frame may last at most {} s",
+                    spec::fmt_num(frame_dt),
+                    spec.file.display(),
+                    spec::short_number(MAX_SUBSTEPS_PER_FRAME as f64 * stable.dt())
+                )
+            } else {
+                "the run has diverged".into()
+            };
+            return Err(SimulateError::TooManySubsteps {
+                cause,
+                frame,
+                needed: (frame_dt / stable.dt()).ceil(),
+                limit: stable.limit(),
+                dt: stable.dt(),
+                speed,
+            });
+        }
+        return Ok(FrameStep {
+            substeps: n,
+            reason: stable.limit(),
+            stable,
+            max_speed,
+            speed,
+            unstable: false,
+        });
+    };
+    let dt = frame_dt / f64::from(user);
+    // Only a fixed count can get here (automatic steps keep speed · dt ≤ 0.3 dx).
+    if max_speed * dt > body.setup.dx {
+        return Err(SimulateError::Diverged {
+            frame,
+            speed: max_speed,
+            cells: max_speed * dt / body.setup.dx,
+        });
+    }
+    match stable.check(dt) {
+        Ok(()) => Ok(FrameStep {
+            substeps: user as usize,
+            reason: "user",
+            stable,
+            max_speed,
+            speed,
+            unstable: false,
+        }),
+        Err(MpmError::StepTooLarge { limit, max_dt, .. }) => {
+            if spec.allow_unstable {
+                Ok(FrameStep {
+                    substeps: user as usize,
+                    reason: "user",
+                    stable,
+                    max_speed,
+                    speed,
+                    unstable: true,
+                })
+            } else {
+                Err(SimulateError::UnstableSubsteps {
+                    file: spec.file.clone(),
+                    position: spec.position("substeps"),
+                    substeps: user,
+                    frame,
+                    dt,
+                    limit,
+                    max_dt,
+                    cfl_number: stable.cfl_number(dt),
+                    needed: stable.fixed_substeps_needed(frame_dt),
+                })
+            }
+        }
+        Err(source) => Err(SimulateError::Simulation {
+            context: format!("frame {frame}"),
+            source,
+        }),
+    }
+}
+
+
 /// Everything the monomorphised run needs.
 struct Job<'a> {
     spec: &'a SimSpec,
-    setup: &'a Setup,
-    state: State,
-    mat: Material,
-    /// Input particles (the first ones of `state`; the fillers follow).
-    n_input: usize,
+    /// The particles, their settings and material (its state is taken when the run starts).
+    body: Body,
     frames: u32,
     out: &'a Path,
     progress: &'a dyn Progress,
@@ -423,19 +596,20 @@ struct Job<'a> {
 pub const MAX_SUBSTEPS_PER_FRAME: usize = 1_000_000;
 
 /// How a frame is stepped.
-struct FrameStep {
+#[derive(Debug, Clone, Copy)]
+pub struct FrameStep {
     /// Substeps it takes.
-    substeps: usize,
+    pub substeps: usize,
     /// Why: `"user"` or the binding limit.
-    reason: &'static str,
+    pub reason: &'static str,
     /// The stability limits at the frame's start.
-    stable: StableStep,
+    pub stable: StableStep,
     /// Largest particle speed at the frame's start (m/s).
-    max_speed: f64,
+    pub max_speed: f64,
     /// The speed bound they hold for (m/s).
-    speed: f64,
+    pub speed: f64,
     /// The fixed count is above the limit (`allow_unstable`).
-    unstable: bool,
+    pub unstable: bool,
 }
 
 /// What the run produced.
@@ -459,143 +633,38 @@ impl ModelVisitor for Job<'_> {
 }
 
 impl Job<'_> {
-    /// The substeps of the frame about to start, or the refusal. The limits hold for the
-    /// particles' speed at the frame's start plus what this frame's forces and impulses can add
-    /// ([`pipe_mpm::speed_bound`]).
     fn substeps<M: Constitutive>(
         &self,
         sim: &Simulator<M>,
         state: &State,
         frame: u32,
     ) -> Result<FrameStep, SimulateError> {
-        let frame_dt = self.spec.frame_dt;
-        let t0 = f64::from(frame - 1) * frame_dt;
-        let max_speed = state.v.iter().map(|v| v.length()).fold(0.0, f64::max);
-        let speed = speed_bound(
-            &state.v,
-            &self.mat.mass,
-            &self.setup.forces,
-            t0,
-            t0 + frame_dt,
-        );
-        let stable = stable_step_at_speed(
-            sim.model(),
-            &self.mat,
-            speed,
-            self.setup.dx,
-            StepLimits::default(),
-        );
-        let Some(user) = self.spec.substeps else {
-            let n = stable.substeps_per_frame(frame_dt);
-            if n > MAX_SUBSTEPS_PER_FRAME {
-                let cause = if speed > max_speed * (1.0 + 1e-9) + 1e-12 {
-                    "a force or impulse is too strong for this material (see `forces`)".into()
-                } else if frame == 1 {
-                    format!(
-                        "`frame_dt` = {} s in {} is too long for this material, grid and \
-                         initial speed: a frame may last at most {} s",
-                        spec::fmt_num(frame_dt),
-                        self.spec.file.display(),
-                        spec::short_number(MAX_SUBSTEPS_PER_FRAME as f64 * stable.dt())
-                    )
-                } else {
-                    "the run has diverged".into()
-                };
-                return Err(SimulateError::TooManySubsteps {
-                    cause,
-                    frame,
-                    needed: (frame_dt / stable.dt()).ceil(),
-                    limit: stable.limit(),
-                    dt: stable.dt(),
-                    speed,
-                });
-            }
-            return Ok(FrameStep {
-                substeps: n,
-                reason: stable.limit(),
-                stable,
-                max_speed,
-                speed,
-                unstable: false,
-            });
-        };
-        let dt = frame_dt / f64::from(user);
-        // Only a fixed count can get here (automatic steps keep speed · dt ≤ 0.3 dx).
-        if max_speed * dt > self.setup.dx {
-            return Err(SimulateError::Diverged {
-                frame,
-                speed: max_speed,
-                cells: max_speed * dt / self.setup.dx,
-            });
-        }
-        match stable.check(dt) {
-            Ok(()) => Ok(FrameStep {
-                substeps: user as usize,
-                reason: "user",
-                stable,
-                max_speed,
-                speed,
-                unstable: false,
-            }),
-            Err(MpmError::StepTooLarge { limit, max_dt, .. }) => {
-                if self.spec.allow_unstable {
-                    Ok(FrameStep {
-                        substeps: user as usize,
-                        reason: "user",
-                        stable,
-                        max_speed,
-                        speed,
-                        unstable: true,
-                    })
-                } else {
-                    Err(SimulateError::UnstableSubsteps {
-                        file: self.spec.file.clone(),
-                        position: self.spec.position("substeps"),
-                        substeps: user,
-                        frame,
-                        dt,
-                        limit,
-                        max_dt,
-                        cfl_number: stable.cfl_number(dt),
-                        needed: stable.fixed_substeps_needed(frame_dt),
-                    })
-                }
-            }
-            Err(source) => Err(SimulateError::Simulation {
-                context: format!("frame {frame}"),
-                source,
-            }),
-        }
+        frame_step(self.spec, &self.body, &self.body.material, sim, state, frame)
     }
 
     fn simulate<M: Constitutive + Clone + 'static>(
         mut self,
         model: M,
     ) -> Result<Done, SimulateError> {
-        let mut state = std::mem::replace(&mut self.state, State::at_rest(Vec::new()));
+        let mut state = std::mem::replace(&mut self.body.state, State::at_rest(Vec::new()));
         let spec = self.spec;
-        let setup = self.setup;
-        let mut cfg = SimConfig::new(setup.domain, setup.dx, spec.frame_dt);
-        cfg.gravity = DVec3::from_array(spec.gravity);
-        cfg.margin = setup::GRID_MARGIN;
-        cfg.boundaries = Boundaries {
-            colliders: setup.colliders.clone(),
-            walls: Some(BoundaryKind::Separate),
-        };
-        cfg.forces = setup.forces.clone();
-        cfg.precision = self.precision;
+        let setup = &self.body.setup;
+        let cfg = self.body.config(spec, self.precision);
         let setup_err = |source| SimulateError::Simulation {
             context: format!(
-                "setting up the simulator (dx {} m, domain {:?} to {:?} m)",
+                "setting up the simulator (dx {} m, {})",
                 fmt_num(setup.dx),
-                setup.domain.lo.to_array(),
-                setup.domain.hi.to_array()
+                match setup.domain {
+                    Some(d) => format!("domain {:?} to {:?} m", d.lo.to_array(), d.hi.to_array()),
+                    None => "grid following the particles".to_string(),
+                }
             ),
             source,
         };
         let sim = Simulator::new(model, cfg).map_err(setup_err)?;
         // Validated and held in the domain once, then kept in the engine from frame to frame.
-        let mut stepper = sim.stepper(&mut state, &self.mat).map_err(setup_err)?;
+        let mut stepper = sim.stepper(&mut state, &self.body.material).map_err(setup_err)?;
+        stepper.watch_contacts();
         // Refuse an unstable fixed substep count before writing anything.
         if self.frames > 1 {
             self.substeps(&sim, &state, 1)?;
@@ -646,7 +715,7 @@ impl Job<'_> {
     ) -> Result<Option<Done>, SimulateError> {
         let spec = self.spec;
         // Only the input particles are written; the fillers follow them unseen.
-        let n_out = self.n_input;
+        let n_out = self.body.n_input;
         let frame0 = FrameOut::new(
             0,
             &state.x[..n_out],
@@ -688,6 +757,13 @@ impl Job<'_> {
             let rep = stepper.advance(t0, dt, n_sub);
             substeps_s += stepping.elapsed().as_secs_f64();
             let rep = rep.map_err(|source| {
+                if let MpmError::Diverged { speed, cells, .. } = source {
+                    return SimulateError::Diverged {
+                        frame,
+                        speed,
+                        cells,
+                    };
+                }
                 let why = if unstable {
                     " (the substep is above the stability limit: allow_unstable)"
                 } else {
@@ -717,6 +793,22 @@ impl Job<'_> {
             if tx.send(ToWriter::Frame(Box::new(out))).is_err() {
                 return Ok(None);
             }
+            // Fillers count too: a boundary acts on the whole object.
+            let contacts = stepper.take_contacts();
+            let walls = self
+                .body
+                .setup
+                .domain
+                .map_or(0, |_| contacts.last().copied().unwrap_or(0));
+            if walls > 0 {
+                let w = format!(
+                    "frame {frame}: the domain walls acted on {walls} particle(s): the motion \
+                     differs from one without walls; enlarge `domain` or leave it out (the grid \
+                     then follows the particles)"
+                );
+                self.progress.log(&format!("warning: {w}"));
+                warnings.push(w);
+            }
             self.progress.message(&format!(
                 "frame {frame}: {n_sub} substeps ({reason}), held {}",
                 rep.held
@@ -736,6 +828,15 @@ impl Job<'_> {
                 unstable,
                 held: rep.held,
                 max_held: rep.max_held,
+                grid: stepper.grid_span().map(|g| spec::BoxSpec {
+                    min: g.lo.to_array(),
+                    max: g.hi.to_array(),
+                }),
+                contacts: if self.body.setup.domain.is_some() {
+                    contacts
+                } else {
+                    contacts[..contacts.len().saturating_sub(1)].to_vec()
+                },
             });
         }
         Ok(Some(Done {

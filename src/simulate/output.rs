@@ -192,6 +192,15 @@ pub struct FrameStats {
     pub held: usize,
     /// Most particles held in a single substep.
     pub max_held: usize,
+    /// The box (m) of the grid nodes the frame's substeps stored: a following grid's windows
+    /// together, or the fixed grid.
+    #[serde(default)]
+    pub grid: Option<BoxSpec>,
+    /// Per boundary of `boundaries` (same order, the domain walls last when there is a
+    /// domain), the particles it acted on in this frame: those whose stencil reached a node it
+    /// treats in some substep.
+    #[serde(default)]
+    pub contacts: Vec<usize>,
 }
 
 /// `summary.json`: what was simulated, how, and what came out.
@@ -238,12 +247,14 @@ pub struct Summary {
     pub fill_particles: usize,
     /// Volume of one filler particle (m³; 0 without fillers).
     pub fill_particle_volume_m3: f64,
-    /// Box the particles are held in (m).
-    pub domain: BoxSpec,
-    /// How the domain was chosen.
+    /// The file's domain (m), whose walls hold the particles that reach it; `null` when the
+    /// grid follows the particles (see `frame_stats[].grid`).
+    pub domain: Option<BoxSpec>,
+    /// How the grid was chosen.
     pub domain_source: String,
-    /// Grid nodes per axis (domain plus the simulator's margin).
-    pub grid_nodes: [usize; 3],
+    /// Grid nodes per axis of a fixed domain (plus the simulator's margin); `null` when the
+    /// grid follows the particles.
+    pub grid_nodes: Option<[usize; 3]>,
     /// Boundaries in the order applied.
     pub boundaries: Vec<String>,
     /// External forces and impulses.
@@ -288,6 +299,31 @@ pub struct Timing {
 }
 
 impl Summary {
+    /// What the grid did: the walls' holds of a fixed domain, or how far a following grid
+    /// spread.
+    fn grid_line(&self) -> String {
+        match self.domain {
+            Some(_) => format!(
+                "{} particle-substeps held at the domain walls",
+                self.held_total
+            ),
+            None => {
+                let widest = self
+                    .frame_stats
+                    .iter()
+                    .filter_map(|f| f.grid)
+                    .map(|g| std::array::from_fn::<f64, 3, _>(|a| g.max[a] - g.min[a]))
+                    .fold([0.0f64; 3], |m, e| std::array::from_fn(|a| m[a].max(e[a])));
+                format!(
+                    "grid following the particles (widest {} x {} x {} m)",
+                    short_number(widest[0]),
+                    short_number(widest[1]),
+                    short_number(widest[2])
+                )
+            }
+        }
+    }
+
     /// A few lines for the terminal: what ran, how many substeps and why, what was written.
     pub fn report(&self, out: &Path) -> String {
         let reasons: std::collections::BTreeSet<&str> = self
@@ -315,7 +351,7 @@ impl Summary {
         };
         let mut text = format!(
             "simulated {} frame(s) of {} particles ({}) in {:.1} s: {steps}; dx {} m, particle \
-             volume {} m^3, {} particle-substeps held at the domain walls\nwrote {} frame PLYs{}, \
+             volume {} m^3, {}\nwrote {} frame PLYs{}, \
              particles.arrow and summary.json to {}",
             self.frames.saturating_sub(1),
             self.particles_out,
@@ -323,7 +359,7 @@ impl Summary {
             self.wall_time_s,
             short_number(self.dx_m),
             short_number(self.particle_volume_m3),
-            self.held_total,
+            self.grid_line(),
             self.frames,
             if self.splats {
                 format!(" and {} splat PLYs", self.frames)

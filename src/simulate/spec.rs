@@ -940,7 +940,7 @@ pub(crate) fn short_number(v: f64) -> String {
 }
 
 /// A number as the user would write it.
-pub(crate) fn fmt_num(v: f64) -> String {
+pub fn fmt_num(v: f64) -> String {
     if v != 0.0 && (v.abs() >= 1e5 || v.abs() < 1e-3) {
         format!("{v:e}")
     } else {

@@ -181,23 +181,35 @@ fn example_sim_yaml_on_a_lattice() {
         s.substeps_total,
         s.frame_stats.iter().map(|f| f.substeps).sum::<usize>()
     );
-    assert_eq!(
-        s.held_total, 0,
-        "the automatic domain holds the whole flight"
-    );
-    let lo = DVec3::from_array(s.domain.min);
-    let hi = DVec3::from_array(s.domain.max);
+    // Without `domain:` the grid follows the block: no walls, nothing held, and each frame's
+    // particles lie inside the grid its substeps stored.
+    assert_eq!(s.held_total, 0);
     assert!(
-        frames
-            .iter()
-            .flatten()
-            .all(|p| p.cmpge(lo).all() && p.cmple(hi).all())
+        s.domain.is_none() && s.grid_nodes.is_none(),
+        "{:?}",
+        s.domain
     );
-    assert!(
-        lo.y >= -0.04 - 1e-12,
-        "the domain stops 2 dx below the ground: {lo}"
-    );
-    assert!(s.boundaries[0].contains("sticky") && s.boundaries.last().unwrap().contains("walls"));
+    assert!(s.domain_source.starts_with("none: the grid follows"));
+    assert_eq!(s.boundaries.len(), 1);
+    assert!(s.boundaries[0].contains("sticky"));
+    for (f, stats) in s.frame_stats.iter().enumerate() {
+        let g = stats.grid.expect("every frame reports its grid");
+        let (lo, hi) = (DVec3::from_array(g.min), DVec3::from_array(g.max));
+        assert!(
+            frames[f + 1]
+                .iter()
+                .all(|p| p.cmpge(lo).all() && p.cmple(hi).all()),
+            "frame {}: particles outside {g:?}",
+            f + 1
+        );
+        // The grid is the block's reach, not a box around the whole flight.
+        assert!((hi - lo).max_element() < 0.4, "frame {}: {g:?}", f + 1);
+        assert_eq!(stats.contacts.len(), 1, "one count per boundary");
+        assert!(stats.contacts[0] <= 1000);
+    }
+    // The ground acts on nothing in free flight and on the landed block.
+    assert_eq!(s.frame_stats[0].contacts, vec![0]);
+    assert!(s.frame_stats[12].contacts[0] > 0, "{:?}", s.frame_stats[12]);
     assert!(s.wall_time_s > 0.0 && s.pipe_version == env!("CARGO_PKG_VERSION"));
     // The wall time by part: setup, the substeps alone, output; they add up to the whole.
     let t = s.timing_s;
@@ -398,8 +410,8 @@ fn pacnerf_scenes_all_frames_with_automatic_substeps() {
 
 /// PAC-NeRF's droplet at 70 fixed substeps per frame with `allow_unstable` (CFL number 0.79):
 /// during frame 9 it blows up without a NaN (speeds ~1e19 m/s, the fluid pushed through the
-/// ground into the domain walls). The run stops at the next frame, naming it, instead of
-/// writing 13 frames of nonsense.
+/// ground). The run stops in that frame, naming it, as soon as a grid node moves more than a
+/// cell in a substep, instead of writing 13 frames of nonsense.
 #[test]
 fn a_fixed_step_divergence_without_nan_is_stopped() {
     let tmp = tempfile::tempdir().unwrap();
@@ -420,10 +432,7 @@ fn a_fixed_step_divergence_without_nan_is_stopped() {
         panic!("{msg}")
     };
     assert!((2..14).contains(&frame) && cells > 1.0, "{msg}");
-    assert!(
-        msg.contains(&format!("diverged by the start of frame {frame}")),
-        "{msg}"
-    );
+    assert!(msg.contains(&format!("diverged by frame {frame}")), "{msg}");
     // The frames before it stay; the table, written as the run went, is not left behind,
     // complete-looking or temporary.
     let names = names_in(&tmp.path().join("out"));
@@ -691,6 +700,127 @@ fn splats_follow_the_particles() {
     assert!(!out.join("splats_0000.ply").exists() && !out.join("splats_0002.ply").exists());
 }
 
+/// A stiff ring (R = 0.15 m, r = 0.04 m) standing almost upright 2 cm above a sticky ground:
+/// it lands, tips over sideways and rolls away from where it fell, motion that starts only
+/// after contact. Without `domain:` the grid follows it, so its frames equal those of a run
+/// inside a domain far too large to reach (≤ 1e-6 m), and no wall is reported. A declared
+/// domain whose side the ring reaches changes the motion, and the summary counts the particles
+/// its walls acted on and warns.
+fn upright_ring() -> Vec<[f32; 3]> {
+    let (big_r, small_r, h) = (0.15f64, 0.04f64, 0.01f64);
+    let tilt = 10f64.to_radians();
+    let mut out = Vec::new();
+    let n = (0.25 / h) as i32;
+    for i in -n..=n {
+        for j in -n..=n {
+            for k in -n..=n {
+                // The ring lies in the x-y plane (its axis along z), then tilts about x.
+                let p = DVec3::new(i as f64, j as f64, k as f64) * h;
+                let q = (p.x * p.x + p.y * p.y).sqrt() - big_r;
+                if q * q + p.z * p.z <= small_r * small_r {
+                    let (c, sn) = (tilt.cos(), tilt.sin());
+                    let r = DVec3::new(p.x, c * p.y - sn * p.z, sn * p.y + c * p.z);
+                    out.push([
+                        r.x as f32,
+                        (r.y + big_r + small_r + 0.02) as f32,
+                        r.z as f32,
+                    ]);
+                }
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn a_ring_that_tips_over_moves_as_without_walls() {
+    let tmp = tempfile::tempdir().unwrap();
+    let ring = write_ply(tmp.path(), "ring.ply", &upright_ring());
+    let base = "material: {family: elastic, youngs_modulus: 1.0e5, poisson_ratio: 0.3, density: 1000}\n\
+                frame_dt: 0.041666666666666664\n\
+                grid_dx: 0.02\n\
+                particle_volume: 1.0e-6\n\
+                boundaries: [{kind: ground, y: 0.0, condition: sticky}]\n";
+    let frames = 16;
+    let run = |name: &str, domain: &str| {
+        let path = tmp.path().join(format!("{name}.sim.yaml"));
+        std::fs::write(&path, format!("{base}{domain}")).unwrap();
+        let out = tmp.path().join(name);
+        let s = simulate::run(&ring, &path, frames, &out, &quiet()).unwrap();
+        let x: Vec<Vec<DVec3>> = (0..frames)
+            .map(|k| read(&out.join(format!("frame_{k:04}.ply"))))
+            .collect();
+        (s, x)
+    };
+    let (follow, x_follow) = run("follow", "");
+    let (huge, x_huge) = run(
+        "huge",
+        "domain: {min: [-1.5, -0.1, -1.5], max: [1.5, 2.0, 1.5]}
+",
+    );
+    // The ring tipped: its axis (z at rest, tilted 10°) is close to vertical at the end, and
+    // its top came down from ~0.4 m.
+    let top = |x: &[DVec3]| x.iter().map(|p| p.y).fold(f64::MIN, f64::max);
+    assert!(top(&x_follow[0]) > 0.35);
+    assert!(
+        top(&x_follow[frames as usize - 1]) < 0.2,
+        "the ring did not fall over: top at {} m",
+        top(&x_follow[frames as usize - 1])
+    );
+    let mut worst = 0.0f64;
+    for (f, (a, b)) in x_follow.iter().zip(&x_huge).enumerate() {
+        assert_eq!(a.len(), b.len());
+        let d = a
+            .iter()
+            .zip(b)
+            .map(|(p, q)| (*p - *q).abs().max_element())
+            .fold(0.0, f64::max);
+        assert!(d <= 1e-6, "frame {f}: {d:e} m from the huge domain's run");
+        worst = worst.max(d);
+    }
+    println!(
+        "ring: top {:.3} -> {:.3} m; follow vs huge domain: {worst:e} m",
+        top(&x_follow[0]),
+        top(&x_follow[frames as usize - 1])
+    );
+    assert!(follow.warnings.is_empty(), "{:?}", follow.warnings);
+    assert!(follow.frame_stats.iter().all(|f| f.contacts.len() == 1));
+    assert!(
+        huge.frame_stats
+            .iter()
+            .all(|f| f.contacts.len() == 2 && f.contacts[1] == 0)
+    );
+    // A declared side wall the falling ring reaches: counted, warned, and the motion differs.
+    let (walled, x_walled) = run(
+        "walled",
+        "domain: {min: [-0.3, -0.1, -0.3], max: [0.3, 0.6, 0.12]}
+",
+    );
+    let hits: usize = walled
+        .frame_stats
+        .iter()
+        .map(|f| f.contacts[1])
+        .max()
+        .unwrap();
+    assert!(hits > 0, "{:?}", walled.frame_stats);
+    assert!(
+        walled
+            .warnings
+            .iter()
+            .any(|w| w.contains("the domain walls acted on")),
+        "{:?}",
+        walled.warnings
+    );
+    let last = frames as usize - 1;
+    let moved = x_walled[last]
+        .iter()
+        .zip(&x_follow[last])
+        .map(|(p, q)| (*p - *q).length())
+        .fold(0.0, f64::max);
+    assert!(moved > 1e-3, "the wall changed nothing ({moved} m)");
+    println!("walled: {hits} particles on the walls, {moved:.3} m off at the last frame");
+}
+
 /// Forces and impulses reach the particles they select, and the automatic domain covers a
 /// thrown block without gravity (no ground).
 #[test]
@@ -773,8 +903,8 @@ fn a_push_mid_frame_sets_the_substeps_and_the_domain() {
             && msg.contains("a force or impulse is too strong"),
         "{msg}"
     );
-    // A force whose reach no grid can hold: the domain drops the reach, and the run is
-    // refused on its substeps (not on `grid_dx`, which is not the problem).
+    // A force no substep count can follow: refused on its substeps (not on `grid_dx`, which
+    // is not the problem).
     let text = sim(0.02).replace(
         "{kind: impulse, particles: all, impulse: [2e-2, 0, 0], time: 0.03}",
         "{kind: force, particles: all, force: [1e150, 0, 0], start: 0.0}",

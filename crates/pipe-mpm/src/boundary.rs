@@ -119,6 +119,26 @@ impl Collider {
     }
 }
 
+impl Collider {
+    /// Whether some node of the box of nodes `lo ..= hi` (m, on a lattice of cell `dx`) is
+    /// one this collider treats.
+    pub fn reaches(&self, lo: DVec3, hi: DVec3, dx: f64) -> bool {
+        match *self {
+            Collider::HalfSpace { point, normal, .. } => {
+                // The smallest (x − p)·n over the box is at a corner.
+                let corner = DVec3::select(normal.cmpgt(DVec3::ZERO), lo, hi);
+                (corner - point).dot(normal) <= PLANE_EPS
+            }
+            Collider::Box { aabb, .. } => (0..3).all(|a| {
+                // Some node strictly inside on this axis.
+                (0..=((hi[a] - lo[a]) / dx).round() as i64)
+                    .map(|k| lo[a] + k as f64 * dx)
+                    .any(|x| x > aabb.lo[a] && x < aabb.hi[a])
+            }),
+        }
+    }
+}
+
 #[inline]
 fn project(v: DVec3, n: DVec3, kind: BoundaryKind) -> DVec3 {
     match kind {
@@ -216,6 +236,11 @@ impl Boundaries {
                 })
                 .collect()
         }))
+    }
+
+    /// Whether the domain walls treat some node of the box of nodes `lo ..= hi` (m) of `grid`.
+    pub fn walls_reach(&self, grid: &GridSpec, lo: DVec3, hi: DVec3) -> bool {
+        self.walls.is_some() && (lo.cmplt(grid.domain.lo).any() || hi.cmpgt(grid.domain.hi).any())
     }
 
     /// Applies every condition to the velocity `v` (m/s) of the node at `x` (m).

@@ -76,12 +76,75 @@ pub enum MpmError {
         /// First offending particle.
         particle: usize,
     },
+    /// The particles of a run whose grid follows them spread over more nodes than its budget
+    /// (fragments flying apart).
+    #[error(
+        "at substep {substep} the particles span {lo:?} to {hi:?} m: a grid over them needs \
+         {nodes} nodes at dx = {dx} m, over the budget of {budget} nodes (fragments flying \
+         apart?); declare a `domain`, or a larger cell size"
+    )]
+    GridTooLarge {
+        /// Substep index (0-based, counted from the start of the run).
+        substep: usize,
+        /// The particles' box (m).
+        lo: [f64; 3],
+        hi: [f64; 3],
+        /// Nodes of the window over them, and the budget.
+        nodes: usize,
+        budget: usize,
+        /// Cell size (m).
+        dx: f64,
+    },
+    /// On a grid that follows the particles, a node moved more than a cell in one substep:
+    /// the run has diverged (a substep far beyond the stability limit), and its particles
+    /// would fly apart without bound.
+    #[error(
+        "the run diverged at substep {substep}: grid velocities reach {speed:.3e} m/s, {cells:.3e} \
+         cells per substep (MPM needs well under one)"
+    )]
+    Diverged {
+        /// Substep index (0-based, counted from the start of the run).
+        substep: usize,
+        /// Largest grid velocity component (m/s).
+        speed: f64,
+        /// Cells it crosses per substep.
+        cells: f64,
+    },
     /// Gradient buffers do not match the tape.
     #[error("gradient input mismatch: {0}")]
     GradientMismatch(&'static str),
 }
 
 impl MpmError {
+    /// This error said of substep `k` (for errors that name one).
+    pub(crate) fn at_substep(self, k: usize) -> Self {
+        match self {
+            MpmError::GridTooLarge {
+                lo,
+                hi,
+                nodes,
+                budget,
+                dx,
+                ..
+            } => MpmError::GridTooLarge {
+                substep: k,
+                lo,
+                hi,
+                nodes,
+                budget,
+                dx,
+            },
+            MpmError::NonFinite {
+                quantity, particle, ..
+            } => MpmError::NonFinite {
+                substep: k,
+                quantity,
+                particle,
+            },
+            other => other,
+        }
+    }
+
     /// This error of a scalar check, said of particle `index`: an invalid or non-finite value
     /// names the particle; other errors are unchanged.
     pub(crate) fn at_particle(self, index: usize) -> Self {

@@ -1,9 +1,11 @@
 //! Background grid: node layout, index math and the quadratic B-spline stencil.
 //!
 //! Node `(i, j, k)` sits at `(i·dx, j·dx, k·dx)` (m) for integer, possibly negative, indices;
-//! the grid stores the box of nodes `origin .. origin + dims`. It is built from the caller's
-//! particle domain (an AABB) plus a margin, so that every particle kept inside the AABB has all
-//! 27 stencil nodes inside the grid.
+//! the grid stores the box of nodes `origin .. origin + dims`. A fixed grid is built from the
+//! caller's particle domain (an AABB) plus a margin, so that every particle kept inside the
+//! AABB has all 27 stencil nodes inside the grid. A following grid ([`GridSpec::unbounded`])
+//! has no domain: each substep stores the window of nodes the particles' stencils reach
+//! ([`GridSpec::window`]), on the same lattice, so the window can move and grow with them.
 
 use std::ops::Range;
 
@@ -43,8 +45,11 @@ pub struct GridSpec {
     pub origin: IVec3,
     /// Number of stored nodes per axis.
     pub dims: [usize; 3],
-    /// Particles are held inside this box (m).
+    /// Particles are held inside this box (m); infinite for a following grid.
     pub domain: Aabb,
+    /// Index of the node that the engine measures particle positions from (the first node of
+    /// a fixed grid; a following grid's windows keep the anchor of the run).
+    pub anchor: IVec3,
 }
 
 /// Extra cells between the particle domain and the grid edge (the stencil needs 2).
@@ -112,7 +117,76 @@ impl GridSpec {
             origin: lo,
             dims,
             domain,
+            anchor: lo,
         })
+    }
+
+    /// A grid without domain and without nodes, of cell size `dx` (m): the template of the
+    /// windows ([`Self::window`]) a grid that follows its particles stores substep by substep.
+    pub fn unbounded(dx: f64) -> Result<Self, MpmError> {
+        if !(dx.is_finite() && dx > 0.0) {
+            return Err(MpmError::InvalidParameter {
+                field: "dx",
+                value: dx,
+                reason: "must be finite and > 0",
+            });
+        }
+        Ok(Self {
+            dx,
+            inv_dx: 1.0 / dx,
+            origin: IVec3::ZERO,
+            dims: [0; 3],
+            domain: Aabb::new(DVec3::NEG_INFINITY, DVec3::INFINITY),
+            anchor: IVec3::ZERO,
+        })
+    }
+
+    /// A grid without nodes (the layout of arrays not yet laid out).
+    pub(crate) fn empty() -> Self {
+        Self {
+            dx: 1.0,
+            inv_dx: 1.0,
+            origin: IVec3::ZERO,
+            dims: [0; 3],
+            domain: Aabb::new(DVec3::ZERO, DVec3::ZERO),
+            anchor: IVec3::ZERO,
+        }
+    }
+
+    /// `true` when the grid follows its particles (no domain).
+    pub fn follows(&self) -> bool {
+        !self.domain.lo.is_finite()
+    }
+
+    /// The nodes `lo ..= hi` (node indices) of this grid's lattice, positions still measured
+    /// from `anchor`.
+    pub fn window(&self, lo: IVec3, hi: IVec3, anchor: IVec3) -> Self {
+        let d = (hi - lo + IVec3::ONE).max(IVec3::ZERO);
+        Self {
+            origin: lo,
+            dims: [d.x as usize, d.y as usize, d.z as usize],
+            anchor,
+            ..*self
+        }
+    }
+
+    /// The first stored node's index minus the anchor's, per axis (cells): a position `x`
+    /// (m, from the anchor) has the local stencil base `⌊x/dx − ½⌋ − shift`.
+    #[inline]
+    pub fn shift(&self) -> [f64; 3] {
+        (self.origin - self.anchor).as_dvec3().to_array()
+    }
+
+    /// The world box (m) of the stored nodes.
+    pub fn extent(&self) -> Aabb {
+        let hi = self.origin
+            + IVec3::new(
+                self.dims[0] as i32,
+                self.dims[1] as i32,
+                self.dims[2] as i32,
+            )
+            - IVec3::ONE;
+        Aabb::new(self.origin.as_dvec3() * self.dx, hi.as_dvec3() * self.dx)
     }
 
     /// Total node count.

@@ -89,7 +89,7 @@ pub use grid_update::mass_threshold;
 pub use models::{
     Constitutive, DruckerPrager, FixedCorotated, ModelGrad, NeoHookean, Newtonian, VonMises,
 };
-pub use sim::{Precision, RunReport, SimConfig, Simulator};
+pub use sim::{Domain, FOLLOW_MAX_NODES, Precision, RunReport, SimConfig, Simulator};
 pub use state::{
     FamilyGrad, FamilyParams, Material, MaterialGrad, State, StateGrad, lame, lame_grad_to_e_nu,
 };

@@ -23,9 +23,9 @@ pub struct SimConfig {
     pub dt: f64,
     /// Gravity (m/s²), e.g. `(0, −9.8, 0)`.
     pub gravity: DVec3,
-    /// Box the particles are held in (m); the grid adds `margin` cells around it.
-    pub domain: Aabb,
-    /// Extra grid cells beyond the domain on each side (at least 2).
+    /// Where the grid lies: a fixed box, or following the particles.
+    pub domain: Domain,
+    /// Extra grid cells beyond a fixed domain on each side (at least 2).
     pub margin: usize,
     /// Boundary conditions.
     pub boundaries: Boundaries,
@@ -34,6 +34,28 @@ pub struct SimConfig {
     /// Floating-point precision of the runs, tapes and backward passes.
     pub precision: Precision,
 }
+
+/// Where the simulation grid lies.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Domain {
+    /// A fixed box (m): the grid covers it plus [`SimConfig::margin`] cells; particles that
+    /// reach its edge are held there (counted in [`RunReport::held`]) and the domain walls
+    /// ([`crate::Boundaries::walls`]) act outside it.
+    Fixed(Aabb),
+    /// The grid follows the particles: each substep's grid is the window of nodes their
+    /// stencils reach (the particles' box plus the stencil margin), on one lattice of cell
+    /// `dx`, so nothing but the declared colliders acts on them and no particle is ever held.
+    /// A window over `max_nodes` nodes (particles flying apart) stops the run with
+    /// [`MpmError::GridTooLarge`].
+    Follow {
+        /// Most nodes a window may have.
+        max_nodes: usize,
+    },
+}
+
+/// Default node budget of a following grid: 2²⁴ nodes (a 256³ box; 0.5 GB per `f64` node
+/// array).
+pub const FOLLOW_MAX_NODES: usize = 1 << 24;
 
 /// Floating-point precision of the particle state, the grid and the arithmetic (the boundary
 /// conditions and the per-particle return maps of the plastic and fluid families always run
@@ -56,7 +78,7 @@ impl SimConfig {
             dx,
             dt,
             gravity: DVec3::new(0.0, -9.8, 0.0),
-            domain,
+            domain: Domain::Fixed(domain),
             margin: 3,
             boundaries: Boundaries {
                 colliders: vec![crate::boundary::Collider::ground(
@@ -68,6 +90,17 @@ impl SimConfig {
             forces: Vec::new(),
             precision: Precision::F64,
         }
+    }
+
+    /// Gravity `(0, −9.8, 0)`, sticky ground `y = 0`, a grid that follows the particles
+    /// ([`Domain::Follow`], budget [`FOLLOW_MAX_NODES`]) and no walls.
+    pub fn following(dx: f64, dt: f64) -> Self {
+        let mut c = Self::new(Aabb::new(DVec3::ZERO, DVec3::ONE), dx, dt);
+        c.domain = Domain::Follow {
+            max_nodes: FOLLOW_MAX_NODES,
+        };
+        c.boundaries.walls = None;
+        c
     }
 }
 
@@ -180,7 +213,19 @@ impl<M: Constitutive> Simulator<M> {
             });
         }
         config.boundaries.validate()?;
-        let grid = GridSpec::new(config.domain, config.dx, config.margin)?;
+        let grid = match config.domain {
+            Domain::Fixed(domain) => GridSpec::new(domain, config.dx, config.margin)?,
+            Domain::Follow { max_nodes } => {
+                if max_nodes < 27 {
+                    return Err(MpmError::InvalidParameter {
+                        field: "max_nodes",
+                        value: max_nodes as f64,
+                        reason: "a grid needs at least the 27 nodes of one stencil",
+                    });
+                }
+                GridSpec::unbounded(config.dx)?
+            }
+        };
         Ok(Self {
             model,
             config,

@@ -9,6 +9,7 @@
 use glam::DVec3;
 
 use crate::error::MpmError;
+use crate::grid::Aabb;
 use crate::models::Constitutive;
 use crate::sim::{Precision, RunReport, Simulator, on_worker};
 use crate::state::{Material, State};
@@ -29,6 +30,11 @@ pub struct Stepper<'s, M: Constitutive> {
     engine: Kept<'s, M>,
     /// Particles held at the domain edge when loaded (counted into the first report).
     held_at_load: usize,
+    /// Per boundary (colliders in order, then the domain walls), the particles whose stencils
+    /// reached it since [`Stepper::take_contacts`] (empty unless watched).
+    contacts: Vec<Vec<bool>>,
+    /// The union of the grids of the substeps of the last [`Stepper::advance`].
+    span: Option<Aabb>,
 }
 
 impl<M: Constitutive> std::fmt::Debug for Stepper<'_, M> {
@@ -58,6 +64,8 @@ impl<M: Constitutive> Simulator<M> {
         Ok(Stepper {
             engine,
             held_at_load: rep.held,
+            contacts: Vec::new(),
+            span: None,
         })
     }
 
@@ -95,15 +103,54 @@ impl<M: Constitutive> Stepper<'_, M> {
             max_held: held,
             ..RunReport::default()
         };
+        let (contacts, span) = (&mut self.contacts, &mut self.span);
+        *span = None;
         per_precision!(Kept, &mut self.engine, e => on_worker(|| {
             e.dt = dt;
             for k in 0..n_substeps {
-                let outcome = e.substep(t0 + k as f64 * dt, true);
+                e.regroup(true).map_err(|err| err.at_substep(k))?;
+                let g = e.grid().extent();
+                *span = Some(match *span {
+                    Some(s) => Aabb::new(s.lo.min(g.lo), s.hi.max(g.hi)),
+                    None => g,
+                });
+                if !contacts.is_empty() {
+                    e.mark_contacts(contacts);
+                }
+                let outcome = e.step(t0 + k as f64 * dt);
                 e.record(k, outcome, &mut rep)?;
             }
             Ok::<(), MpmError>(())
         }))?;
         Ok(rep)
+    }
+
+    /// Starts counting, per boundary, the particles it acts on: those whose stencil reaches a
+    /// node the boundary treats in some substep (colliders in order, then the domain walls of
+    /// a fixed domain), read and reset by [`Self::take_contacts`].
+    pub fn watch_contacts(&mut self) {
+        let n = self.len();
+        let b = per_precision!(Kept, &self.engine, e => e.sim.config.boundaries.colliders.len());
+        self.contacts = vec![vec![false; n]; b + 1];
+    }
+
+    /// Per boundary (colliders in order, then the domain walls), how many particles it acted
+    /// on since the last call (or [`Self::watch_contacts`]); empty when not watched.
+    pub fn take_contacts(&mut self) -> Vec<usize> {
+        self.contacts
+            .iter_mut()
+            .map(|m| {
+                let c = m.iter().filter(|&&b| b).count();
+                m.fill(false);
+                c
+            })
+            .collect()
+    }
+
+    /// The box (m) of the grid nodes the substeps of the last [`Self::advance`] stored (the
+    /// union of a following grid's windows; the fixed grid otherwise); `None` before any.
+    pub fn grid_span(&self) -> Option<Aabb> {
+        self.span
     }
 
     /// Writes the positions (m, held in the domain) and velocities (m/s) into `state.x` and

@@ -71,7 +71,7 @@ impl<M: Constitutive> Simulator<M> {
         e.keep = true;
         e.load(s.len(), &e.ids.clone());
         let start = e.p.clone();
-        e.regroup(false);
+        e.regroup(false)?;
         e.grid_step(t);
         let mut g = Soa::<T>::from_grad(g_next, &e.ids);
         let mut acc = MatAcc::zeros(start.stride, M::HAS_FAMILY_PARAMS);

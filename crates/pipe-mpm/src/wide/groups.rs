@@ -104,6 +104,8 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
         };
         let n = keys.len();
         let inv = w.c(grid.inv_dx);
+        // Local bases: the window's first node is `shift` cells from the positions' anchor.
+        let shift: [W::V; 3] = arr!(3, |a| w.c(grid.shift()[a]));
         let top: [W::V; 3] = arr!(3, |a| w.c((grid.dims[a] - 3) as f64));
         let (dy, dz) = (w.c(grid.dims[1] as f64), w.c(grid.dims[2] as f64));
         // The linear index is exact in T below 2^(mantissa bits).
@@ -118,7 +120,7 @@ impl<T: Precise> WideOp<T> for KeyTask<'_, T> {
             for s in (b0..(b0 + BLOCK).min(n)).step_by(T::N) {
                 let b: [W::V; 3] = arr!(3, |a| {
                     let f = w.floor(w.sub(w.mul(w.load(&x[a][s..]), inv), w.c(0.5)));
-                    w.min(w.max(f, w.zero()), top[a])
+                    w.min(w.max(w.sub(f, shift[a]), w.zero()), top[a])
                 });
                 let m = (n - s).min(T::N);
                 let bu: [[u32; 8]; 3] = arr!(3, |a| w.to_u32(b[a]));

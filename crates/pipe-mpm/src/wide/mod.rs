@@ -37,7 +37,7 @@ pub(crate) mod transfer;
 #[cfg(test)]
 mod tests;
 
-use glam::DVec3;
+use glam::{DVec3, IVec3};
 use rayon::prelude::*;
 
 use self::groups::{Groups, task_cuts};
@@ -179,6 +179,8 @@ pub(crate) struct Work<T> {
     pub(crate) aux: Vec<T>,
     /// Extra momentum of the substep (3 fields), when forces act.
     pub(crate) extra: Option<Vec<T>>,
+    /// The grid (a following grid's window) the groups and node arrays are laid out on.
+    pub(crate) grid: GridSpec,
     /// `[mv, m]` per node (kg·m/s, kg), zero outside `active`.
     pub(crate) nodes: Vec<[T; 4]>,
     pub(crate) active: NodeBox,
@@ -195,6 +197,7 @@ impl<T> Default for Work<T> {
             tau: Vec::new(),
             aux: Vec::new(),
             extra: None,
+            grid: GridSpec::empty(),
             nodes: Vec::new(),
             active: NodeBox::default(),
             vgrid: Vec::new(),
@@ -204,8 +207,8 @@ impl<T> Default for Work<T> {
 }
 
 impl<T: Real> Work<T> {
-    /// Sized for `n` particles on `grid` (the grid arrays zero when new).
-    fn fit(&mut self, n: usize, grid: &GridSpec, keep: bool, keep_tau: bool) {
+    /// Sized for `n` particles.
+    fn fit(&mut self, n: usize, keep: bool, keep_tau: bool) {
         let st = padded(n);
         self.a = scratch(std::mem::take(&mut self.a), 9 * st);
         if keep {
@@ -214,12 +217,93 @@ impl<T: Real> Work<T> {
             }
             self.aux = scratch(std::mem::take(&mut self.aux), st);
         }
-        if self.nodes.len() != grid.len() {
-            self.nodes = vec![[T::of(0.0); 4]; grid.len()];
-            self.vgrid = vec![[T::of(0.0); 4]; grid.len()];
-            self.active = NodeBox::default();
+    }
+
+    /// The node arrays laid out on `grid` (still zero outside `active`).
+    fn set_grid(&mut self, grid: &GridSpec) {
+        if self.grid != *grid {
+            relayout(&mut self.nodes, &mut self.active, &self.grid, grid);
+            self.vgrid.resize(grid.len(), [T::of(0.0); 4]);
+            self.grid = *grid;
         }
     }
+}
+
+/// A node array that is zero outside `active` (laid out on `old`) laid out on `new`, still
+/// zero outside `active`: the box is cleared first when the layout changes (a window of other
+/// dimensions), and new entries are zero.
+pub(crate) fn relayout<T: Real>(
+    data: &mut Vec<[T; 4]>,
+    active: &mut NodeBox,
+    old: &GridSpec,
+    new: &GridSpec,
+) {
+    if old.dims != new.dims {
+        if data.len() == old.len() {
+            active.fill(old, data, [T::of(0.0); 4]);
+        } else {
+            data.clear();
+        }
+        *active = NodeBox::default();
+    }
+    data.resize(new.len(), [T::of(0.0); 4]);
+}
+
+/// The window of a following grid over the particles of `p` (positions from `template`'s
+/// anchor): the nodes of their stencils, `⌊x/dx − ½⌋ .. ⌊x/dx − ½⌋ + 2` on each axis, with one
+/// node more on each side (a bound on the rounding of the key pass).
+pub(crate) fn follow_window<T: Precise>(
+    template: &GridSpec,
+    p: &Soa<T>,
+    max_nodes: usize,
+) -> Result<GridSpec, MpmError> {
+    let (n, st) = (p.n, p.stride);
+    let inv = T::of(template.inv_dx);
+    let half = T::of(0.5);
+    let mut lo = IVec3::ZERO;
+    let mut hi = IVec3::ZERO;
+    let mut box_m = ([0.0; 3], [0.0; 3]);
+    for a in 0..3 {
+        let xs = &p.x[a * st..a * st + n];
+        let (mn, mx) = xs
+            .par_chunks(4096)
+            .map(|c| {
+                c.iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| {
+                        let v = v.f64();
+                        (l.min(v), h.max(v))
+                    })
+            })
+            .reduce(
+                || (f64::INFINITY, f64::NEG_INFINITY),
+                |x, y| (x.0.min(y.0), x.1.max(y.1)),
+            );
+        let base = |v: f64| (T::of(v) * inv - half).floor().f64();
+        let (bl, bh) = (base(mn), base(mx));
+        // Non-finite positions: the substep reports them; keep a valid window meanwhile.
+        let (bl, bh) = if bl.is_finite() && bh.is_finite() && bl.abs() < 1e9 && bh.abs() < 1e9 {
+            (bl, bh)
+        } else {
+            (0.0, 0.0)
+        };
+        lo[a] = template.anchor[a] + bl as i32 - 1;
+        hi[a] = template.anchor[a] + bh as i32 + 3;
+        box_m.0[a] = mn + template.anchor[a] as f64 * template.dx;
+        box_m.1[a] = mx + template.anchor[a] as f64 * template.dx;
+    }
+    let win = template.window(lo, hi, template.anchor);
+    let nodes = win.dims.iter().map(|&d| d as f64).product::<f64>();
+    if nodes > max_nodes as f64 {
+        return Err(MpmError::GridTooLarge {
+            substep: 0,
+            lo: box_m.0,
+            hi: box_m.1,
+            nodes: nodes as usize,
+            budget: max_nodes,
+            dx: template.dx,
+        });
+    }
+    Ok(win)
 }
 
 /// The engine's arrays, which the simulator keeps from one run to the next so that a run
@@ -286,7 +370,9 @@ fn no_material() -> Material {
 /// per-particle material in the same order, and the buffers.
 pub(crate) struct Engine<'s, T, M: Constitutive> {
     pub(crate) sim: &'s Simulator<M>,
-    /// Position of the grid's first node (m): particle positions are stored relative to it.
+    /// The node particle positions are measured from (a fixed grid's first node, or the
+    /// anchor of a following grid's windows), and its position (m).
+    pub(crate) anchor: IVec3,
     pub(crate) origin: DVec3,
     /// The domain relative to `origin`, rounded inwards (m).
     pub(crate) lo: [T; 3],
@@ -326,32 +412,41 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         mat: &Material,
         mut b: Buffers<T>,
     ) -> Self {
-        let origin = sim.grid.node_pos([0, 0, 0]);
+        let anchor = if sim.grid.follows() {
+            // The node below the particles' box.
+            let lo = state.x.iter().fold(DVec3::INFINITY, |l, x| l.min(*x));
+            (lo * sim.grid.inv_dx).floor().as_ivec3()
+        } else {
+            sim.grid.origin
+        };
+        let origin = anchor.as_dvec3() * sim.grid.dx;
         // In the caller's order first; sorted below.
         let p = Soa::from_state(state, origin, b.p.take());
         let ids = (0..state.len() as u32).collect();
-        let mut e = Self::with_state(sim, p, ids, mat, b);
+        let mut e = Self::with_state(sim, anchor, p, ids, mat, b);
         e.resort();
         e
     }
 
     /// The engine loaded with the state `p` in slot order `ids` (slot `i` holds the caller's
-    /// particle `ids[i]`; positions relative to the grid's first node) and `mat` (the
-    /// caller's order), in the buffers `b`.
+    /// particle `ids[i]`; positions relative to node `anchor`) and `mat` (the caller's order),
+    /// in the buffers `b`; groups built.
     pub(crate) fn with_state(
         sim: &'s Simulator<M>,
+        anchor: IVec3,
         p: Soa<T>,
         ids: Vec<u32>,
         mat: &Material,
         mut b: Buffers<T>,
     ) -> Self {
         let grid = &sim.grid;
-        let origin = grid.node_pos([0, 0, 0]);
+        let origin = anchor.as_dvec3() * grid.dx;
+        // A following grid has no domain: ±∞ hold nothing.
         let lo_l = grid.domain.lo - origin;
         let hi_l = grid.domain.hi - origin;
         let n = p.n;
         b.x_next = scratch(std::mem::take(&mut b.x_next), 3 * padded(n));
-        b.work.fit(n, grid, false, false);
+        b.work.fit(n, false, false);
         let same = |v: &[f64]| v.iter().all(|&x| x == v[0]);
         let uniform = [&mat.mass, &mat.volume, &mat.mu, &mat.lam]
             .into_iter()
@@ -359,6 +454,7 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
             && mat.family.is_empty();
         let mut e = Self {
             sim,
+            anchor,
             origin,
             lo: std::array::from_fn(|a| T::of_up(lo_l[a])),
             hi: std::array::from_fn(|a| T::of_down(hi_l[a])),
@@ -376,8 +472,27 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
             dt: sim.config.dt,
         };
         e.set_order(ids);
-        e.b.work.groups.rebuild(grid, &e.p);
+        // A window too large stops the first substep, which computes it again.
+        if e.place_grid(None).is_ok() {
+            let grid = e.b.work.grid;
+            e.b.work.groups.rebuild(&grid, &e.p);
+        }
         e
+    }
+
+    /// The grid of a substep from the state `src` (else the engine's own): the fixed grid, or
+    /// the window of a following grid over its particles; the work arrays are laid out on it.
+    fn place_grid(&mut self, src: Option<&Soa<T>>) -> Result<(), MpmError> {
+        let grid = match self.sim.config.domain {
+            crate::sim::Domain::Fixed(_) => self.sim.grid,
+            crate::sim::Domain::Follow { max_nodes } => {
+                let mut template = self.sim.grid;
+                template.anchor = self.anchor;
+                follow_window(&template, src.unwrap_or(&self.p), max_nodes)?
+            }
+        };
+        self.b.work.set_grid(&grid);
+        Ok(())
     }
 
     /// The spare buffers of a state of `n` particles (from the buffers' own, else new).
@@ -430,9 +545,7 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         if self.ids != ids {
             self.set_order(ids.to_vec());
         }
-        self.b
-            .work
-            .fit(n, &self.sim.grid, self.keep, Self::KEEP_TAU);
+        self.b.work.fit(n, self.keep, Self::KEEP_TAU);
     }
 
     /// The buffers, for the next run.
@@ -449,7 +562,7 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
 
     /// Re-sorts the particles by their current cells (the groups' keys).
     fn resort(&mut self) {
-        let Some(rel) = Order::by_key(&self.b.work.groups.key, self.sim.grid.len()) else {
+        let Some(rel) = Order::by_key(&self.b.work.groups.key, self.b.work.grid.len()) else {
             return;
         };
         let from = rel.slots();
@@ -458,7 +571,8 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         self.b.spare = Some(std::mem::replace(&mut self.p, next));
         let ids = from.iter().map(|&i| self.ids[i as usize]).collect();
         self.set_order(ids);
-        self.b.work.groups.rebuild(&self.sim.grid, &self.p);
+        let grid = self.b.work.grid;
+        self.b.work.groups.rebuild(&grid, &self.p);
     }
 
     /// The spare state buffer (allocated when there is none of this size).
@@ -488,19 +602,23 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         });
     }
 
-    /// Groups of the current positions; with `resort`, sorts again first when they have
-    /// broken up ([`RESORT_GROWTH`]).
-    pub(crate) fn regroup(&mut self, resort: bool) {
-        self.regroup_from(None, resort);
+    /// Grid and groups of the current positions; with `resort`, sorts again first when they
+    /// have broken up ([`RESORT_GROWTH`]). Fails when a following grid's window would exceed
+    /// its budget ([`MpmError::GridTooLarge`], substep 0: the caller names it).
+    pub(crate) fn regroup(&mut self, resort: bool) -> Result<(), MpmError> {
+        self.regroup_from(None, resort)
     }
 
     /// [`Self::regroup`] of the positions of `src` (the state the next substep reads) when
     /// given, else of the engine's own.
-    pub(crate) fn regroup_from(&mut self, src: Option<&Soa<T>>, resort: bool) {
-        self.b
-            .work
-            .groups
-            .rebuild(&self.sim.grid, src.unwrap_or(&self.p));
+    pub(crate) fn regroup_from(
+        &mut self,
+        src: Option<&Soa<T>>,
+        resort: bool,
+    ) -> Result<(), MpmError> {
+        self.place_grid(src)?;
+        let grid = self.b.work.grid;
+        self.b.work.groups.rebuild(&grid, src.unwrap_or(&self.p));
         let groups = self.b.work.groups.list.len();
         if self.sorted_groups == 0 {
             self.sorted_groups = groups;
@@ -508,6 +626,7 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
             self.resort();
             self.sorted_groups = self.b.work.groups.list.len();
         }
+        Ok(())
     }
 
     /// Steps 1–4 for every particle: `F` (in place, or from `src` into the engine's state),
@@ -574,7 +693,8 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
     /// the particles' box, then the grid update.
     fn particles_to_grid(&mut self, isa: Isa, t: f64, src: Option<&Soa<T>>) {
         let sim = self.sim;
-        let grid = &sim.grid;
+        let grid = self.b.work.grid;
+        let grid = &grid;
         let (n, st) = (self.p.n, self.p.stride);
         let dt = self.dt;
         let b = &mut self.b;
@@ -628,7 +748,8 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
     /// Step 7: G2P, `x ← hold(x + dt v)` (into `x_next`, then swapped in); returns the
     /// particles held and whether some new value is NaN/Inf.
     fn g2p(&mut self, isa: Isa, src: Option<&Soa<T>>) -> (usize, bool) {
-        let grid = &self.sim.grid;
+        let grid = self.b.work.grid;
+        let grid = &grid;
         let (n, st) = (self.p.n, self.p.stride);
         let tasks = self.b.work.groups.tasks(G2P_CHUNK);
         let cuts = task_cuts(&tasks, n);
@@ -692,10 +813,9 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
         (held, bad || bad_f)
     }
 
-    /// One substep at time `t` (s), regrouping first (and re-sorting when `resort`).
-    pub(crate) fn substep(&mut self, t: f64, resort: bool) -> (usize, bool) {
-        self.regroup(resort);
-        self.step(t)
+    /// The grid of the current substep (a following grid's window).
+    pub(crate) fn grid(&self) -> &GridSpec {
+        &self.b.work.grid
     }
 
     /// Counts substep `k`'s `(held, bad)` into `rep`; when some value went NaN/Inf, names the
@@ -716,18 +836,71 @@ impl<'s, T: Precise, M: Constitutive> Engine<'s, T, M> {
                 particle,
             });
         }
+        // A following grid has no walls to stop a runaway: a node faster than a cell per
+        // substep is a divergence (automatic substeps keep it under 0.3).
+        let cells = self.b.work.v_max * self.dt * self.sim.grid.inv_dx;
+        if self.sim.grid.follows() && cells > 1.0 {
+            return Err(MpmError::Diverged {
+                substep: k,
+                speed: self.b.work.v_max,
+                cells,
+            });
+        }
         rep.substeps += 1;
         rep.held += held;
         rep.max_held = rep.max_held.max(held);
         Ok(())
     }
 
+    /// Marks the particles (the caller's indices) whose stencils reach a node each boundary
+    /// treats in the current substep: `marks[c]` for collider `c`, then `marks[colliders]` for
+    /// the domain walls.
+    pub(crate) fn mark_contacts(&self, marks: &mut [Vec<bool>]) {
+        let work = &self.b.work;
+        let grid = &work.grid;
+        let bc = &self.sim.config.boundaries;
+        let dx = grid.dx;
+        // Nothing to do when no boundary reaches the particles' box.
+        let corner = |b: [usize; 3], k: usize| {
+            (grid.origin.as_dvec3()
+                + DVec3::new(b[0] as f64, b[1] as f64, b[2] as f64)
+                + DVec3::splat(k as f64))
+                * dx
+        };
+        let t = &work.groups.touched;
+        if t.x.is_empty() {
+            return;
+        }
+        let (blo, bhi) = (
+            corner([t.x.start, t.y.start, t.z.start], 0),
+            corner([t.x.end - 1, t.y.end - 1, t.z.end - 1], 0),
+        );
+        let n_col = bc.colliders.len();
+        for (c, marks) in marks.iter_mut().enumerate() {
+            let reaches = |lo: DVec3, hi: DVec3| match bc.colliders.get(c) {
+                Some(col) => col.reaches(lo, hi, dx),
+                None => c == n_col && bc.walls_reach(grid, lo, hi),
+            };
+            if !reaches(blo, bhi) {
+                continue;
+            }
+            for g in &work.groups.list {
+                let lo = corner(g.base.map(|b| b as usize), 0);
+                if reaches(lo, lo + DVec3::splat(2.0 * dx)) {
+                    for &id in &self.ids[g.start as usize..(g.start + g.n) as usize] {
+                        marks[id as usize] = true;
+                    }
+                }
+            }
+        }
+    }
+
     /// The work buffers, replaced by `with` (a spare set, or empty).
     pub(crate) fn take_work(&mut self, with: Work<T>) -> Work<T> {
         let w = std::mem::replace(&mut self.b.work, with);
-        self.b
-            .work
-            .fit(self.p.n, &self.sim.grid, self.keep, Self::KEEP_TAU);
+        self.b.work.fit(self.p.n, self.keep, Self::KEEP_TAU);
+        // The next substep lays the work out on its grid; until then, the one taken.
+        self.b.work.set_grid(&w.grid);
         w
     }
 

@@ -67,7 +67,8 @@ pub(crate) struct WideTape<T> {
     pub checkpoints: Vec<Checkpoint<T>>,
     /// State after the last substep.
     pub last: Checkpoint<T>,
-    /// Position of the grid's first node (m): the states' positions are relative to it.
+    /// The node the states' positions are measured from, and its position (m).
+    pub anchor: glam::IVec3,
     pub origin: DVec3,
     /// What the last segment's reversal starts with, computed as the forward pass ran it.
     pub lead: LeadSlot<T>,
@@ -200,7 +201,11 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
     let mut ids: Arc<[u32]> = e.ids.as_slice().into();
     for k in 0..n_substeps {
         let at_checkpoint = k.is_multiple_of(every);
-        e.regroup(at_checkpoint);
+        if let Err(err) = e.regroup(at_checkpoint) {
+            e.write_back(state);
+            give_back(sim, back, spare_soas, spare_works);
+            return Err(err.at_substep(k));
+        }
         if at_checkpoint {
             if *ids != *e.ids {
                 ids = e.ids.as_slice().into();
@@ -213,8 +218,7 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
         // Keeping a substep's intermediates changes none of its arithmetic.
         e.keep = lead_works.contains(&k);
         if e.keep {
-            e.b.work
-                .fit(e.p.n, &sim.grid, true, Engine::<T, M>::KEEP_TAU);
+            e.b.work.fit(e.p.n, true, Engine::<T, M>::KEEP_TAU);
         }
         let outcome = e.step(t0 + k as f64 * sim.config.dt);
         if let Err(err) = e.record(k, outcome, rep) {
@@ -242,12 +246,13 @@ pub(crate) fn forward_tape<T: Precise, M: Constitutive>(
         ids,
     };
     drop(pool);
-    let origin = e.origin;
+    let (anchor, origin) = (e.anchor, e.origin);
     e.write_back(state);
     sim.wide_cache.put(e.into_buffers());
     Ok(WideTape {
         checkpoints,
         last,
+        anchor,
         origin,
         lead: LeadSlot::new(lead),
         schedule,
@@ -297,6 +302,8 @@ impl<T> Default for BackCache<T> {
 /// Scratch of the adjoint kernels.
 #[derive(Debug)]
 pub(crate) struct AdjBuffers<T> {
+    /// The layout of the node arrays.
+    grid: crate::grid::GridSpec,
     /// `[v̄, 0]` per node, zero outside `g_active`.
     gvgrid: Vec<[T; 4]>,
     g_active: NodeBox,
@@ -312,6 +319,7 @@ pub(crate) struct AdjBuffers<T> {
 impl<T> Default for AdjBuffers<T> {
     fn default() -> Self {
         Self {
+            grid: crate::grid::GridSpec::empty(),
             gvgrid: Vec::new(),
             g_active: NodeBox::default(),
             gnodes: Vec::new(),
@@ -395,17 +403,15 @@ pub(crate) fn adjoint_step<T: Precise, M: Constitutive>(
     adj: &mut AdjBuffers<T>,
 ) -> bool {
     let sim = e.sim;
-    let grid = &sim.grid;
+    let grid = &work.grid;
     let dt = sim.config.dt;
     let isa = Isa::detect();
     let (n, st) = (s.n, s.stride);
     let groups = &work.groups;
     // G2P: node gradients v̄_i (scattered) and each group's x̄.
-    if adj.gvgrid.len() == grid.len() {
-        adj.g_active.fill(grid, &mut adj.gvgrid, [T::of(0.0); 4]);
-    } else {
-        adj.gvgrid = vec![[T::of(0.0); 4]; grid.len()];
-    }
+    super::relayout(&mut adj.gvgrid, &mut adj.g_active, &adj.grid, grid);
+    adj.grid = *grid;
+    adj.g_active.fill(grid, &mut adj.gvgrid, [T::of(0.0); 4]);
     adj.g_active = work.active.clone();
     let v_max = work.v_max;
     let scale = (grid.dims.iter().copied().max().unwrap_or(1) as f64) * grid.dx;
@@ -749,6 +755,7 @@ pub(crate) fn backward<T: Precise, M: Constitutive>(
     let p = Engine::<T, M>::soa_from(&mut cache.engine, &tape.last.p);
     let mut e = Engine::<T, M>::with_state(
         sim,
+        tape.anchor,
         p,
         tape.last.ids.to_vec(),
         mat,
@@ -918,7 +925,7 @@ impl<T: Precise> Reverser<'_, T> {
         self.keep = hi - a <= free + 1;
         if lo < a {
             // Truncated: first recompute the state at `start` (one extra snapshot).
-            self.push(c, lo, a, false);
+            self.push(c, lo, a, false)?;
             let r = self.reverse(c, a, hi, free);
             self.pop();
             return r;
@@ -934,7 +941,7 @@ impl<T: Precise> Reverser<'_, T> {
         from: usize,
         to: usize,
         keep: bool,
-    ) -> Option<Work<T>> {
+    ) -> Result<Option<Work<T>>, MpmError> {
         if let Some(p) = self.lead.take_state(to) {
             let work = if keep {
                 self.lead.take_work(from)
@@ -943,7 +950,7 @@ impl<T: Precise> Reverser<'_, T> {
             };
             if work.is_some() || !keep {
                 self.stack.push(p);
-                return work;
+                return Ok(work);
             }
             self.spare.push(p);
         }
@@ -953,19 +960,28 @@ impl<T: Precise> Reverser<'_, T> {
         std::mem::swap(&mut c.e.p, &mut buf);
         let was = c.e.keep;
         c.e.keep = keep;
-        c.e.regroup_from(Some(base), false);
-        c.e.step_from(self.t0 + from as f64 * self.dt, Some(base));
-        for k in from + 1..to {
-            c.e.regroup(false);
-            c.e.step(self.t0 + k as f64 * self.dt);
+        // The windows of a following grid are those of the forward pass (same positions).
+        let mut r =
+            c.e.regroup_from(Some(base), false)
+                .map_err(|e| e.at_substep(from));
+        if r.is_ok() {
+            c.e.step_from(self.t0 + from as f64 * self.dt, Some(base));
+            for k in from + 1..to {
+                r = c.e.regroup(false).map_err(|e| e.at_substep(k));
+                if r.is_err() {
+                    break;
+                }
+                c.e.step(self.t0 + k as f64 * self.dt);
+            }
         }
         c.e.keep = was;
         std::mem::swap(&mut c.e.p, &mut buf);
         self.stack.push(buf);
-        keep.then(|| {
+        r?;
+        Ok(keep.then(|| {
             let spare = self.spare_work.pop().unwrap_or_default();
             c.e.take_work(spare)
-        })
+        }))
     }
 
     fn pop(&mut self) {
@@ -987,7 +1003,7 @@ impl<T: Precise> Reverser<'_, T> {
         let mut kept = None;
         while b - a > 1 {
             let m = a + self.plan.split(b - a, free);
-            kept = self.push(c, a, m, keep && m == a + 1);
+            kept = self.push(c, a, m, keep && m == a + 1)?;
             let r = self.reverse(c, m, b, free - 1);
             self.pop();
             r?;
@@ -1014,7 +1030,8 @@ impl<T: Precise> Reverser<'_, T> {
             None => {
                 // Recompute the substep's intermediates from `s` (the new F goes to the
                 // engine's scratch state).
-                c.e.regroup_from(Some(s), false);
+                c.e.regroup_from(Some(s), false)
+                    .map_err(|e| e.at_substep(k))?;
                 c.e.grid_from(t, Some(s));
                 c.e.work()
             }

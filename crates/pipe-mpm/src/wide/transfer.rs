@@ -171,9 +171,15 @@ pub(crate) fn unit_stencil<W: Wide, const PAIR: bool>(
     let (base_a, base_b) = (ga.base.map(|b| b as usize), gb.base.map(|b| b as usize));
     let (sa, sb) = (ga.start as usize, gb.start as usize);
     let inv = w.c(grid.inv_dx);
+    // Bases from the positions' anchor (the window's first node is `shift` cells from it).
+    let shift = grid.shift();
     let xv: [W::V; 3] = arr!(3, |a| load_unit::<W, PAIR>(w, x[a], sa, sb));
     let fx = arr!(3, |a| {
-        let base = splat_unit::<W, PAIR>(w, W::T::of(base_a[a] as f64), W::T::of(base_b[a] as f64));
+        let base = splat_unit::<W, PAIR>(
+            w,
+            W::T::of(base_a[a] as f64 + shift[a]),
+            W::T::of(base_b[a] as f64 + shift[a]),
+        );
         w.sub(w.mul(xv[a], inv), base)
     });
     (xv, base_a, base_b, fx)
