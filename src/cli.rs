@@ -284,8 +284,14 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
                             display_dir(&dir)
                         )
                     }
-                    StageState::Stale(reasons) => format!("stale    {}", reasons.join("; ")),
-                    StageState::NotRun => "not run".to_string(),
+                    StageState::Stale(reasons) => format!(
+                        "stale    {}{}",
+                        reasons.join("; "),
+                        checkpoint_note(ws, &s.name, &s.key, "; ")
+                    ),
+                    StageState::NotRun => {
+                        format!("not run{}", checkpoint_note(ws, &s.name, &s.key, " ("))
+                    }
                 };
                 println!("  {:width$}  {line}", s.name);
             }
@@ -293,13 +299,17 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
         }
         Command::Clean { all } => {
             let removed = ws.clean(registry, *all)?;
+            let (e, c) = (removed.entries.len(), removed.checkpoints.len());
             println!(
-                "removed {} cache entr{}",
-                removed.len(),
-                if removed.len() == 1 { "y" } else { "ies" }
+                "removed {e} cache {} and {c} {}",
+                if e == 1 { "entry" } else { "entries" },
+                if c == 1 { "checkpoint" } else { "checkpoints" }
             );
-            for r in removed {
+            for r in removed.entries {
                 println!("  {r}");
+            }
+            for r in removed.checkpoints {
+                println!("  checkpoint {r}");
             }
             Ok(())
         }
@@ -425,6 +435,24 @@ fn headline_metrics(entry: &Path) -> String {
         String::new()
     } else {
         format!("; {}", rows.join(", "))
+    }
+}
+
+/// What `status` says about the checkpoint a run of a stage would resume (empty if none):
+/// `<sep>checkpoint from epoch 12 will be resumed`, closed by `)` when `sep` opens one.
+fn checkpoint_note(ws: &Workspace, name: &str, key: &str, sep: &str) -> String {
+    let close = if sep.ends_with('(') { ")" } else { "" };
+    match ws.checkpoint(name, key) {
+        Ok(None) => String::new(),
+        Ok(Some(saved)) => format!(
+            "{sep}checkpoint from {} will be resumed{close}",
+            saved.progress
+        ),
+        Err(problem) => {
+            format!(
+                "{sep}its checkpoint will be ignored and the stage start over: {problem}{close}"
+            )
+        }
     }
 }
 

@@ -94,7 +94,7 @@ pub struct Manifest {
     pub key_material: KeyMaterial,
     /// Relative path → hash and size.
     pub outputs: BTreeMap<String, OutputFile>,
-    /// Wall-clock time of the stage, seconds.
+    /// Wall-clock time of the stage, seconds (summed over the runs of a resumed stage).
     pub wall_s: f64,
     /// Peak resident memory of the process at the end of the stage, bytes (0 if unknown).
     pub peak_rss_bytes: u64,
@@ -202,6 +202,17 @@ impl Store {
         self.cache_dir().join(format!("{stage}-{key}"))
     }
 
+    /// `.pipe/checkpoints`: checkpoints of unfinished stages (see `checkpoint`); never entries,
+    /// and not cleared with the temporary directory.
+    pub fn checkpoints_dir(&self) -> PathBuf {
+        self.root.join("checkpoints")
+    }
+
+    /// Where the checkpoints of `stage` with `key` live.
+    pub fn checkpoint_dir(&self, stage: &str, key: &str) -> PathBuf {
+        self.checkpoints_dir().join(format!("{stage}-{key}"))
+    }
+
     /// Load and verify an entry: every output present with the recorded hash.
     pub fn verify(&self, stage: &str, key: &str) -> Result<Manifest, EntryProblem> {
         let dir = self.entry_dir(stage, key);
@@ -287,19 +298,12 @@ impl Store {
 
     /// Names (`<stage>-<key>`) of all entries.
     pub fn entries(&self) -> Result<Vec<String>, CacheError> {
-        let dir = self.cache_dir();
-        if !dir.exists() {
-            return Ok(Vec::new());
-        }
-        let mut out = Vec::new();
-        for e in fs::read_dir(&dir).map_err(io_err(&dir))? {
-            let e = e.map_err(io_err(&dir))?;
-            if e.path().is_dir() {
-                out.push(e.file_name().to_string_lossy().to_string());
-            }
-        }
-        out.sort();
-        Ok(out)
+        subdirectories(&self.cache_dir())
+    }
+
+    /// Names (`<stage>-<key>`) of all checkpoint directories.
+    pub fn checkpoints(&self) -> Result<Vec<String>, CacheError> {
+        subdirectories(&self.checkpoints_dir())
     }
 
     /// Delete leftovers of interrupted runs (caller holds the work-directory lock).
@@ -310,6 +314,22 @@ impl Store {
         }
         Ok(())
     }
+}
+
+/// Names of the directories in `dir`, sorted (none if it does not exist).
+fn subdirectories(dir: &Path) -> Result<Vec<String>, CacheError> {
+    if !dir.exists() {
+        return Ok(Vec::new());
+    }
+    let mut out = Vec::new();
+    for e in fs::read_dir(dir).map_err(io_err(dir))? {
+        let e = e.map_err(io_err(dir))?;
+        if e.path().is_dir() {
+            out.push(e.file_name().to_string_lossy().to_string());
+        }
+    }
+    out.sort();
+    Ok(out)
 }
 
 /// Relative paths (with `/`) of all files under `dir`, sorted.

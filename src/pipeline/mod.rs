@@ -2,6 +2,7 @@
 //! It knows nothing of physics; stages plug in through [`stage::Registry`].
 
 pub mod cache;
+pub mod checkpoint;
 pub mod graph;
 pub mod lock;
 pub mod progress;

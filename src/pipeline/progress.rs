@@ -15,6 +15,10 @@ pub trait Progress: Send + Sync {
     fn message(&self, msg: &str);
     /// A line for the log.
     fn log(&self, line: &str);
+    /// A line the user must see even with `--quiet` (resuming from a checkpoint, warnings).
+    fn notice(&self, line: &str) {
+        self.log(line);
+    }
 }
 
 /// How the run talks to the user.
@@ -194,5 +198,9 @@ impl Progress for Reporter {
         if self.mode != Mode::Quiet {
             self.println(&format!("    {line}"));
         }
+    }
+
+    fn notice(&self, line: &str) {
+        self.println(&format!("    {line}"));
     }
 }

@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use super::cache::{self, EntryProblem, KEY_FORMAT, KeyMaterial, Manifest, StatCache, Store};
+use super::checkpoint::{CheckpointProblem, Checkpoints, Saved};
 use super::graph::Graph;
 use super::lock::{LockError, WorkdirLock};
 use super::progress::Reporter;
@@ -127,6 +128,15 @@ impl RunReport {
             .map(|(n, _, _)| n.as_str())
             .collect()
     }
+}
+
+/// What `pipe clean` removed: names `<stage>-<key>`.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Cleaned {
+    /// Cache entries.
+    pub entries: Vec<String>,
+    /// Checkpoint directories.
+    pub checkpoints: Vec<String>,
 }
 
 /// Last-run record of one pipeline file: which key each stage had.
@@ -367,6 +377,7 @@ impl Workspace {
             let inputs = &p.inputs;
             let tmp = self.store.begin(&p.name, &p.key)?;
             let start = Instant::now();
+            let checkpoints = self.checkpoints(&p.name, &p.key);
             let mut ctx = StageContext::new(
                 &p.name,
                 &pipeline.scene,
@@ -375,7 +386,8 @@ impl Workspace {
                 &tmp,
                 reporter,
                 interrupt,
-            );
+            )
+            .with_checkpoints(&checkpoints);
             let result = stage.run(&spec.params, &mut ctx).and_then(|()| {
                 if ctx.metrics.is_empty() {
                     Ok(())
@@ -384,9 +396,16 @@ impl Workspace {
                         .map_err(StageError::failed)
                 }
             });
+            let resumed = ctx.resumed().is_some();
             if let Err(e) = result {
                 let _ = fs::remove_dir_all(&tmp);
                 reporter.stage_finished(i, n, &p.name, "FAILED");
+                if let Ok(Some(saved)) = checkpoints.latest() {
+                    reporter.println(&format!(
+                        "    `{}` keeps its checkpoint ({}); the next run with the same parameters continues from it",
+                        p.name, saved.progress
+                    ));
+                }
                 return Err(match e {
                     StageError::Interrupted => RunError::Interrupted(p.name.clone()),
                     source => RunError::Stage {
@@ -395,7 +414,8 @@ impl Workspace {
                     },
                 });
             }
-            let wall_s = start.elapsed().as_secs_f64();
+            let run_s = start.elapsed().as_secs_f64();
+            let wall_s = if resumed { checkpoints.wall_s() } else { run_s };
             let manifest = Manifest {
                 key: p.key.clone(),
                 stage: p.name.clone(),
@@ -411,13 +431,25 @@ impl Workspace {
                     .unwrap_or(0),
             };
             let manifest = self.store.commit(&tmp, manifest)?;
+            if let Err(e) = checkpoints.remove() {
+                // The entry is committed; a leftover checkpoint only takes space (`pipe clean`).
+                reporter.println(&format!(
+                    "    warning: could not remove the checkpoint of `{}`: {e}",
+                    p.name
+                ));
+            }
             record.stages.insert(p.name.clone(), p.key_material.clone());
             self.save_record(&record)?;
+            let total = if resumed {
+                format!(", {wall_s:.2} s with the runs it resumed")
+            } else {
+                String::new()
+            };
             reporter.stage_finished(
                 i,
                 n,
                 &p.name,
-                &format!("done in {wall_s:.2} s ({})", short(&p.key)),
+                &format!("done in {run_s:.2} s{total} ({})", short(&p.key)),
             );
             entries.insert(
                 p.name.clone(),
@@ -427,9 +459,11 @@ impl Workspace {
                     manifest,
                 },
             );
-            report
-                .stages
-                .push((p.name.clone(), p.key.clone(), Outcome::Ran { wall_s }));
+            report.stages.push((
+                p.name.clone(),
+                p.key.clone(),
+                Outcome::Ran { wall_s: run_s },
+            ));
         }
         // Cached stages count as this pipeline's current state too.
         for p in &planned {
@@ -441,9 +475,21 @@ impl Workspace {
         Ok(report)
     }
 
-    /// Remove cache entries that no pipeline references. With `all`, remove every entry.
-    /// Returns the removed entry names.
-    pub fn clean(&self, registry: &Registry, all: bool) -> Result<Vec<String>, RunError> {
+    /// The checkpoints of stage `name` at `key` (see [`super::checkpoint`]).
+    pub fn checkpoints(&self, name: &str, key: &str) -> Checkpoints {
+        Checkpoints::new(self.store.checkpoint_dir(name, key), name, key)
+    }
+
+    /// The checkpoint a run of stage `name` at `key` would resume, if any; a problem means it
+    /// would be ignored (with a warning) and the stage would start over.
+    pub fn checkpoint(&self, name: &str, key: &str) -> Result<Option<Saved>, CheckpointProblem> {
+        self.checkpoints(name, key).latest()
+    }
+
+    /// Remove cache entries that no pipeline references, and checkpoints that no pipeline
+    /// references or whose stage has committed its entry. With `all`, remove every entry and
+    /// every checkpoint.
+    pub fn clean(&self, registry: &Registry, all: bool) -> Result<Cleaned, RunError> {
         let _lock = WorkdirLock::acquire(self.store.root(), "pipe clean")?;
         self.store.clear_tmp()?;
         let mut keep = BTreeSet::new();
@@ -463,16 +509,23 @@ impl Workspace {
                 }
             }
         }
-        let mut removed = Vec::new();
+        let remove = |dir: PathBuf| {
+            fs::remove_dir_all(&dir).map_err(|source| cache::CacheError::Io { path: dir, source })
+        };
+        let mut cleaned = Cleaned::default();
         for e in self.store.entries()? {
             if !keep.contains(&e) {
-                let dir = self.store.cache_dir().join(&e);
-                fs::remove_dir_all(&dir)
-                    .map_err(|source| cache::CacheError::Io { path: dir, source })?;
-                removed.push(e);
+                remove(self.store.cache_dir().join(&e))?;
+                cleaned.entries.push(e);
             }
         }
-        Ok(removed)
+        for c in self.store.checkpoints()? {
+            if !keep.contains(&c) || self.store.cache_dir().join(&c).is_dir() {
+                remove(self.store.checkpoints_dir().join(&c))?;
+                cleaned.checkpoints.push(c);
+            }
+        }
+        Ok(cleaned)
     }
 }
 

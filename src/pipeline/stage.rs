@@ -14,6 +14,7 @@ use serde::de::DeserializeOwned;
 use serde_json::Value;
 
 use super::cache::Manifest;
+use super::checkpoint::{Checkpoints, Saved};
 use super::progress::Progress;
 use super::spec::{Preset, SceneSpec};
 
@@ -60,7 +61,7 @@ pub struct UpstreamEntry {
 }
 
 /// One metric row: what a stage measured (becomes `metrics.arrow` in its entry).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct MetricRow {
     /// Training epoch, if the value belongs to one.
     pub epoch: Option<u32>,
@@ -71,7 +72,47 @@ pub struct MetricRow {
     /// Metric name, e.g. `psnr`, `mask_iou`.
     pub metric: String,
     /// Value (units given by the metric's name and docs).
+    #[serde(with = "number_or_text")]
     pub value: f64,
+}
+
+/// An `f64` in JSON: a number when finite, `"NaN"`, `"inf"` or `"-inf"` otherwise (a metric
+/// such as the PSNR of identical images is infinite; a checkpoint must keep it).
+mod number_or_text {
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error> {
+        if v.is_finite() {
+            s.serialize_f64(*v)
+        } else if v.is_nan() {
+            s.serialize_str("NaN")
+        } else if *v > 0.0 {
+            s.serialize_str("inf")
+        } else {
+            s.serialize_str("-inf")
+        }
+    }
+
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Repr {
+        Number(f64),
+        Text(String),
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+        match Repr::deserialize(d)? {
+            Repr::Number(v) => Ok(v),
+            Repr::Text(t) => match t.as_str() {
+                "NaN" => Ok(f64::NAN),
+                "inf" => Ok(f64::INFINITY),
+                "-inf" => Ok(f64::NEG_INFINITY),
+                other => Err(serde::de::Error::custom(format!(
+                    "expected a number, \"NaN\", \"inf\" or \"-inf\", found \"{other}\""
+                ))),
+            },
+        }
+    }
 }
 
 /// What a running stage can see and do.
@@ -91,6 +132,8 @@ pub struct StageContext<'a> {
     /// Metrics recorded so far.
     pub metrics: Vec<MetricRow>,
     interrupt: &'a AtomicBool,
+    checkpoints: Option<&'a Checkpoints>,
+    resumed: Option<Saved>,
 }
 
 impl std::fmt::Debug for StageContext<'_> {
@@ -123,7 +166,113 @@ impl<'a> StageContext<'a> {
             progress,
             metrics: Vec::new(),
             interrupt,
+            checkpoints: None,
+            resumed: None,
         }
+    }
+
+    /// Keep this stage's checkpoints in `checkpoints` (the runner does; without it
+    /// [`Self::resume`] finds nothing, [`Self::checkpoint`] keeps nothing and
+    /// [`Self::checkpoint_file`] is an error).
+    pub fn with_checkpoints(mut self, checkpoints: &'a Checkpoints) -> Self {
+        self.checkpoints = Some(checkpoints);
+        self
+    }
+
+    /// The state saved by the last [`Self::checkpoint`] of a run of this stage name with this
+    /// same cache key that did not finish (Ctrl-C, `kill -9`, a crash, a failure), if any.
+    ///
+    /// On `Some`, it also restores [`Self::metrics`] to the rows recorded up to that checkpoint
+    /// and tells the user, even with `--quiet`: ``resuming `material` from its checkpoint
+    /// (epoch 12)`` (the progress text given to [`Self::checkpoint`]). A checkpoint that is
+    /// unreadable, of another checkpoint format, stage or key, whose files do not match their
+    /// hashes, or whose state does not deserialize as `T` is reported as a warning and ignored
+    /// (`None`: the stage starts over); it is never an error.
+    ///
+    /// Call it once, before training and before recording metrics. The key covers parameters,
+    /// code `VERSION`, upstream keys and inputs, so a checkpoint is only ever resumed by the same
+    /// computation; change `VERSION` when the state's layout or meaning changes.
+    pub fn resume<T: DeserializeOwned>(&mut self) -> Option<T> {
+        let checkpoints = self.checkpoints?;
+        match checkpoints.load::<T>() {
+            Ok(None) => None,
+            Ok(Some(loaded)) => {
+                self.progress.notice(&format!(
+                    "resuming `{}` from its checkpoint ({})",
+                    self.name, loaded.saved.progress
+                ));
+                self.metrics = loaded.metrics;
+                self.resumed = Some(loaded.saved);
+                Some(loaded.state)
+            }
+            Err(problem) => {
+                self.progress.notice(&format!(
+                    "warning: ignoring the checkpoint of `{}` and starting over: {problem}",
+                    self.name
+                ));
+                None
+            }
+        }
+    }
+
+    /// Save `state` so that a later run continues from it: atomically (written beside,
+    /// fsync'd, renamed), in `.pipe/checkpoints/<stage>-<key>/`, together with
+    /// [`Self::metrics`] and the files written through [`Self::checkpoint_file`] since the
+    /// previous checkpoint. `progress` is a short position shown on resume and by
+    /// `pipe status`, e.g. `epoch 12`. The runner deletes the checkpoints once the stage's entry
+    /// is committed.
+    ///
+    /// A resumed run must produce the same outputs as an uninterrupted one, bit for bit, so
+    /// `state` must hold everything the rest of the run depends on: the epoch (or step) to
+    /// continue from, the parameters being learnt, the optimiser's moments and step count, the
+    /// learning-rate schedule's position, every random generator's state (e.g. a serde-enabled
+    /// `rand_pcg::Pcg64`, or its seed and the draws made), and anything accumulated (best
+    /// value so far, early-stopping counters, densification statistics). Save at an epoch
+    /// boundary, after the epoch's updates, and make the loop start from `state.epoch`.
+    /// The state is JSON: floats survive exactly (checked here: a state that does not read
+    /// back equal, e.g. one holding NaN or infinity, fails the stage with a clear error); keep
+    /// large arrays in [`Self::checkpoint_file`] instead. Checkpoint every few epochs, not
+    /// every step: it costs a JSON encode and decode, a hash of the files and a few fsyncs.
+    pub fn checkpoint<T: Serialize + DeserializeOwned>(
+        &self,
+        progress: &str,
+        state: &T,
+    ) -> Result<(), StageError> {
+        match self.checkpoints {
+            None => Ok(()),
+            Some(c) => c
+                .save(progress, &self.metrics, state)
+                .map(|_| ())
+                .map_err(StageError::failed),
+        }
+    }
+
+    /// A path where the stage writes file `name` (a plain file name) of its next checkpoint,
+    /// e.g. a large array in binary; [`Self::checkpoint`] hashes and commits it with the state.
+    /// Each checkpoint holds the files written since the previous one: write them all each time.
+    pub fn checkpoint_file(&self, name: &str) -> Result<PathBuf, StageError> {
+        let c = self.checkpoints.ok_or_else(|| {
+            StageError::failed(super::checkpoint::CheckpointError::NoStore(
+                self.name.to_string(),
+            ))
+        })?;
+        c.file(name).map_err(StageError::failed)
+    }
+
+    /// The checkpoint [`Self::resume`] continued from, if it did.
+    pub fn resumed(&self) -> Option<&Saved> {
+        self.resumed.as_ref()
+    }
+
+    /// File `name` of the checkpoint [`Self::resume`] returned (its hash already checked), if
+    /// it holds one. Read it before the next [`Self::checkpoint`], which supersedes it.
+    pub fn resumed_file(&self, name: &str) -> Option<PathBuf> {
+        let saved = self.resumed.as_ref()?;
+        saved
+            .files
+            .iter()
+            .any(|f| f == name)
+            .then(|| saved.dir.join(name))
     }
 
     /// Return `Err(Interrupted)` once the user asked to stop; call it in every loop.

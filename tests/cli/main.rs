@@ -3,6 +3,7 @@
 mod formats;
 mod ingest;
 mod init;
+mod resume;
 mod runner;
 mod simulate;
 mod spec_errors;

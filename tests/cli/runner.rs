@@ -232,15 +232,17 @@ fn clean_drops_only_unreferenced_entries() {
     f.run(&RunOptions::default()).unwrap();
     assert_eq!(f.ws().store.entries().unwrap().len(), 5);
     let removed = f.ws().clean(&registry(), false).unwrap();
-    assert_eq!(removed.len(), 2, "{removed:?}");
+    assert_eq!(removed.entries.len(), 2, "{removed:?}");
     assert!(
         removed
+            .entries
             .iter()
             .all(|r| r.starts_with("double-") || r.starts_with("sum-"))
     );
+    assert!(removed.checkpoints.is_empty(), "{removed:?}");
     assert!(f.run(&RunOptions::default()).unwrap().executed().is_empty());
     let all = f.ws().clean(&registry(), true).unwrap();
-    assert_eq!(all.len(), 3);
+    assert_eq!(all.entries.len(), 3);
 }
 
 #[test]

@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 use pipe::pipeline::progress::{Mode, Reporter};
 use pipe::pipeline::runner::{RunError, RunOptions, RunReport, Workspace};
 use pipe::pipeline::spec::{self, Overrides, Pipeline};
-use pipe::pipeline::stage::{Registry, StageContext, StageError, TypedStage};
+use pipe::pipeline::stage::{MetricRow, Registry, StageContext, StageError, TypedStage};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -47,18 +47,25 @@ fn test_hooks(ctx: &StageContext<'_>) -> Result<(), StageError> {
         std::process::abort();
     }
     if std::env::var("PIPE_TEST_HOLD_STAGE").ok().as_deref() == Some(ctx.name) {
-        let release = PathBuf::from(std::env::var("PIPE_TEST_HOLD").expect("hold file"));
-        std::fs::write(
-            release.with_extension("started"),
-            std::process::id().to_string(),
-        )
-        .map_err(StageError::failed)?;
-        while !release.exists() {
-            ctx.check_interrupted()?;
-            std::thread::sleep(Duration::from_millis(10));
-        }
+        hold(ctx)?;
     }
     std::fs::remove_file(ctx.out_dir.join("partial.txt")).map_err(StageError::failed)?;
+    Ok(())
+}
+
+/// Create `<PIPE_TEST_HOLD>.started` and wait until the file `PIPE_TEST_HOLD` exists,
+/// honouring interrupts.
+fn hold(ctx: &StageContext<'_>) -> Result<(), StageError> {
+    let release = PathBuf::from(std::env::var("PIPE_TEST_HOLD").expect("hold file"));
+    std::fs::write(
+        release.with_extension("started"),
+        std::process::id().to_string(),
+    )
+    .map_err(StageError::failed)?;
+    while !release.exists() {
+        ctx.check_interrupted()?;
+        std::thread::sleep(Duration::from_millis(10));
+    }
     Ok(())
 }
 
@@ -133,9 +140,128 @@ impl TypedStage for Sum {
     }
 }
 
+/// `train` parameters.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct TrainParams {
+    /// Epochs to run.
+    pub epochs: u32,
+    /// Step size (part of the key and of the result).
+    pub rate: f64,
+}
+
+/// Everything a `train` run depends on after an epoch (its history goes to a checkpoint file).
+#[derive(Debug, Serialize, Deserialize)]
+struct TrainState {
+    /// Epochs done.
+    epoch: u32,
+    /// The value being "trained".
+    x: f64,
+    /// splitmix64 state.
+    rng: u64,
+}
+
+/// Train stage: a toy optimisation of `x` (starting at the source's value) over `epochs`,
+/// drawing a random number per epoch, recording `x` as a metric and in a history; it
+/// checkpoints after every epoch (state, metrics, and the history as a checkpoint file) and
+/// resumes. Outputs: `out.txt` (the bits of the final `x`), `history.bin` (every epoch's `x`,
+/// f64 little-endian), `metrics.arrow`.
+///
+/// Hooks: after the checkpoint of epoch `PIPE_TEST_HOLD_EPOCH` (epochs done) it holds as
+/// [`hold`] does when `PIPE_TEST_HOLD_STAGE` is `train`; it appends each epoch it runs to the
+/// file `PIPE_TEST_EPOCH_LOG`.
+#[derive(Debug)]
+pub struct Train;
+impl TypedStage for Train {
+    type Params = TrainParams;
+    const KIND: &'static str = "train";
+    const VERSION: u32 = 1;
+    const DESCRIPTION: &'static str = "test: a resumable training loop";
+    const UPSTREAM: &'static [&'static str] = &["source"];
+    fn output_schemas(&self) -> Vec<(&'static str, u32)> {
+        vec![]
+    }
+    fn run(&self, p: &TrainParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
+        let start = read_value(&ctx.upstream("source")?.dir) as f64;
+        let (mut state, mut history) = match ctx.resume::<TrainState>() {
+            Some(state) => {
+                let file = ctx
+                    .resumed_file("history.bin")
+                    .ok_or_else(|| StageError::Failed("checkpoint without history.bin".into()))?;
+                (state, std::fs::read(file).map_err(StageError::failed)?)
+            }
+            None => (
+                TrainState {
+                    epoch: 0,
+                    x: start,
+                    rng: 0x853c_49e6_748f_ea9b,
+                },
+                Vec::new(),
+            ),
+        };
+        let hold_epoch = std::env::var("PIPE_TEST_HOLD_EPOCH")
+            .ok()
+            .filter(|_| std::env::var("PIPE_TEST_HOLD_STAGE").ok().as_deref() == Some(ctx.name))
+            .map(|e| e.parse::<u32>().expect("PIPE_TEST_HOLD_EPOCH is a number"));
+        let epoch_log = std::env::var("PIPE_TEST_EPOCH_LOG").ok();
+        while state.epoch < p.epochs {
+            ctx.check_interrupted()?;
+            if let Some(log) = &epoch_log {
+                use std::io::Write;
+                let mut f = std::fs::OpenOptions::new()
+                    .create(true)
+                    .append(true)
+                    .open(log)
+                    .map_err(StageError::failed)?;
+                writeln!(f, "{}", state.epoch).map_err(StageError::failed)?;
+            }
+            // splitmix64, then a bounded non-linear update that no float slip survives.
+            state.rng = state.rng.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = state.rng;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            z ^= z >> 31;
+            let u = (z >> 11) as f64 / (1u64 << 53) as f64;
+            state.x = (state.x * (1.0 + p.rate) + u).sin() * 10.0;
+            history.extend_from_slice(&state.x.to_le_bytes());
+            ctx.metric(MetricRow {
+                epoch: Some(state.epoch),
+                view: None,
+                frame: None,
+                metric: "x".into(),
+                value: state.x,
+            });
+            state.epoch += 1;
+            std::fs::write(ctx.checkpoint_file("history.bin")?, &history)
+                .map_err(StageError::failed)?;
+            ctx.checkpoint(&format!("epoch {}", state.epoch), &state)?;
+            if hold_epoch == Some(state.epoch) {
+                hold(ctx)?;
+            }
+        }
+        std::fs::write(ctx.out_dir.join("history.bin"), &history).map_err(StageError::failed)?;
+        std::fs::write(
+            ctx.out_dir.join("out.txt"),
+            format!("{:016x}\n", state.x.to_bits()),
+        )
+        .map_err(StageError::failed)
+    }
+}
+
 /// Registry of the test stages.
 pub fn registry() -> Registry {
-    Registry::new().with(Source).with(Double).with(Sum)
+    Registry::new()
+        .with(Source)
+        .with(Double)
+        .with(Sum)
+        .with(Train)
+}
+
+/// A pipeline of source(5) → train(epochs, rate).
+pub fn train_pipeline(epochs: u32, rate: f64) -> String {
+    format!(
+        "name: test\nscene:\n  dataset: pacnerf\n  path: .\nstages:\n  source:\n    value: 5\n  train:\n    epochs: {epochs}\n    rate: {rate}\n"
+    )
 }
 
 /// The standard test pipeline: source(value) → double(factor) → sum (reads both).
