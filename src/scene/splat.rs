@@ -37,6 +37,7 @@ pub fn render_gaussians(g: &Gaussians) -> pipe_render::Gaussians<'_, f32> {
             degree: u32::from(g.sh_degree),
             coeffs: sh,
         },
+        deformation: None,
     }
 }
 

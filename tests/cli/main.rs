@@ -1,5 +1,6 @@
 //! Integration tests of the `pipe` library and CLI (one test binary, one module per area).
 
+mod deformed_render;
 mod formats;
 mod ingest;
 mod init;

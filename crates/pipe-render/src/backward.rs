@@ -8,7 +8,8 @@
 //! `dα/do = exp(power)`, `dα/dpower = α`, `power = -½(A dx² + C dy²) - B dx dy`.
 //! Per-tile gradients land in a buffer parallel to the tile lists and are summed per
 //! Gaussian in tile order, so results do not depend on the thread count.
-//! Then per Gaussian (parallel chunks) through the projection, SH and the activations.
+//! Then per Gaussian (parallel chunks) through the projection (and a deformation's `F` and
+//! SH rotation), SH and the activations.
 
 use std::time::{Duration, Instant};
 
@@ -19,7 +20,7 @@ use crate::camera::{Camera, TILE};
 use crate::error::RenderError;
 use crate::forward::{PROJECT_CHUNK, RenderOptions, Rendered, gather, splat_table, validate};
 use crate::gaussians::{Colors, Gaussians, sh_coeff_count};
-use crate::project::{ParamGrad, ProjectCtx, ProjectedGrad, project_one_vjp};
+use crate::project::{GradSlots, ParamGrad, ProjectCtx, ProjectedGrad, project_one_vjp};
 use crate::real::Real;
 use crate::tiles::split_by_offsets;
 
@@ -54,6 +55,13 @@ pub struct Gradients<T> {
     pub colors: Vec<[T; 3]>,
     /// `dL/d sh` (`[gaussian][coeff k][channel]`, empty for [`Colors::Rgb`]).
     pub sh: Vec<[T; 3]>,
+    /// `dL/dF` per Gaussian, row-major like [`crate::Deformation::f`] (empty without a
+    /// deformation). Goes with `means` to the simulation's adjoint.
+    pub deformation: Vec<[T; 9]>,
+    /// `dL/dR` per Gaussian for the SH rotation, row-major like
+    /// [`crate::Deformation::sh_rotation`] (empty without one; zeros for [`Colors::Rgb`] and
+    /// SH degree 0).
+    pub sh_rotation: Vec<[T; 9]>,
     /// `dL/d means2d` (per pixel), the densification statistic of 3DGS.
     pub means2d: Vec<[T; 2]>,
     /// `dL/d conics` `[A, B, C]` (B counted once).
@@ -198,27 +206,39 @@ fn params_backward<T: Real>(
         Colors::Rgb(_) => 0,
         Colors::Sh { degree, .. } => sh_coeff_count(degree),
     };
+    let deformed = g.deformation.as_ref();
+    let n_f = if deformed.is_some() { n } else { 0 };
+    let n_r = if deformed.and_then(|d| d.sh_rotation).is_some() {
+        n
+    } else {
+        0
+    };
     let mut pg = vec![ParamGrad::<T>::default(); n];
     let mut sh = vec![[T::ZERO; 3]; n * k];
-    let sh_chunk = (PROJECT_CHUNK * k).max(1);
-    let mut sh_chunks: Vec<&mut [[T; 3]]> = sh.chunks_mut(sh_chunk).collect();
-    sh_chunks.resize_with(n.div_ceil(PROJECT_CHUNK), Default::default);
+    let mut g_f = vec![[T::ZERO; 9]; n_f];
+    let mut g_r = vec![[T::ZERO; 9]; n_r];
     pg.par_chunks_mut(PROJECT_CHUNK)
-        .zip(sh_chunks.into_par_iter())
+        .zip(task_chunks(&mut sh, k, n))
+        .zip(task_chunks(&mut g_f, n_f.min(1), n))
+        .zip(task_chunks(&mut g_r, n_r.min(1), n))
         .enumerate()
-        .for_each(|(c, (pgc, shc))| {
+        .for_each(|(c, (((pgc, shc), fc), rc))| {
             for (j, out) in pgc.iter_mut().enumerate() {
                 let i = c * PROJECT_CHUNK + j;
                 let p = &fwd.projected[i];
                 if !p.visible() {
                     continue;
                 }
-                let g_sh = if k > 0 {
-                    &mut shc[j * k..(j + 1) * k]
-                } else {
-                    &mut [][..]
+                let slots = GradSlots {
+                    sh: if k > 0 {
+                        &mut shc[j * k..(j + 1) * k]
+                    } else {
+                        &mut [][..]
+                    },
+                    f: fc.get_mut(j),
+                    r: rc.get_mut(j),
                 };
-                *out = project_one_vjp(g, i, cam, &ctx, p, &up[i], g_sh);
+                *out = project_one_vjp(g, i, cam, &ctx, p, &up[i], slots);
             }
         });
     let mut out = Gradients {
@@ -228,6 +248,8 @@ fn params_backward<T: Real>(
         opacities: up.iter().map(|u| u.opacity).collect(),
         colors: up.iter().map(|u| u.color).collect(),
         sh,
+        deformation: g_f,
+        sh_rotation: g_r,
         means2d: up.iter().map(|u| u.mean2d).collect(),
         conics: up.iter().map(|u| u.conic).collect(),
         ..Default::default()
@@ -242,4 +264,12 @@ fn params_backward<T: Real>(
         })
         .collect();
     out
+}
+
+/// `v` split into the chunks of the per-Gaussian tasks ([`PROJECT_CHUNK`] Gaussians with
+/// `per` entries each): `n.div_ceil(PROJECT_CHUNK)` chunks, all empty when `per` is 0.
+fn task_chunks<X>(v: &mut [X], per: usize, n: usize) -> Vec<&mut [X]> {
+    let mut chunks: Vec<&mut [X]> = v.chunks_mut((PROJECT_CHUNK * per).max(1)).collect();
+    chunks.resize_with(n.div_ceil(PROJECT_CHUNK), Default::default);
+    chunks
 }

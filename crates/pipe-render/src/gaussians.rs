@@ -37,6 +37,25 @@ pub enum Colors<'a, T> {
     },
 }
 
+/// A deformation carried by each Gaussian (PhysGaussian, Xie et al. 2024, §4.1): the
+/// Gaussian of a material point with deformation gradient `F` has covariance
+/// `Σ' = F Σ Fᵀ` (`Σ = R(q) S Sᵀ R(q)ᵀ` from its scales and quaternion), and its SH colour
+/// is turned with the material: `rgb = SH(Rᵀ·d)`, `d` the unit view direction (mean − camera
+/// centre). Matrices are row-major 3×3 (`m[3·row + col]`), dimensionless. The backward
+/// returns `dL/dF` and `dL/dR` ([`crate::Gradients::deformation`], `sh_rotation`).
+/// Non-finite entries cull the Gaussian (zero gradients), as a non-finite quaternion does.
+#[derive(Debug, Clone, Copy)]
+pub struct Deformation<'a, T> {
+    /// Per Gaussian, the deformation gradient `F` (row-major): `Σ' = F Σ Fᵀ`. Any matrix;
+    /// a singular `F` flattens the Gaussian (its 2D footprint keeps the `eps2d` blur).
+    pub f: &'a [[T; 9]],
+    /// Per Gaussian, the rotation `R` (row-major) the SH are evaluated in: `rgb = SH(Rᵀ·d)`
+    /// (typically the polar rotation of `F`). Not re-orthonormalised: a non-rotation gives
+    /// the SH polynomials at a non-unit vector. `None`: colours are not turned. Ignored (zero
+    /// gradient) for [`Colors::Rgb`] and SH degree 0.
+    pub sh_rotation: Option<&'a [[T; 9]]>,
+}
+
 /// Gaussians as borrowed SoA slices, all of the same length `n`.
 #[derive(Debug, Clone, Copy)]
 pub struct Gaussians<'a, T> {
@@ -51,6 +70,8 @@ pub struct Gaussians<'a, T> {
     pub opacities: Opacities<'a, T>,
     /// Colours.
     pub colors: Colors<'a, T>,
+    /// Optional per-Gaussian deformation (`None`: the canonical Gaussians).
+    pub deformation: Option<Deformation<'a, T>>,
 }
 
 /// Number of SH coefficients per channel for a degree: `(degree+1)²`.
@@ -69,7 +90,8 @@ impl<T: Real> Gaussians<'_, T> {
         self.means.is_empty()
     }
 
-    /// Checks that every buffer has `n` entries (`n·(degree+1)²` for SH) and `degree <= 3`.
+    /// Checks that every buffer has `n` entries (`n·(degree+1)²` for SH, also the
+    /// deformation's `f` and `sh_rotation`) and `degree <= 3`.
     pub fn validate(&self) -> Result<(), RenderError> {
         let n = self.len();
         let check = |field: &'static str, got: usize, expected: usize| {
@@ -101,6 +123,12 @@ impl<T: Real> Gaussians<'_, T> {
                 check("sh", coeffs.len(), n * sh_coeff_count(degree))?;
             }
         }
+        if let Some(d) = &self.deformation {
+            check("deformation.f", d.f.len(), n)?;
+            if let Some(r) = d.sh_rotation {
+                check("deformation.sh_rotation", r.len(), n)?;
+            }
+        }
         Ok(())
     }
 
@@ -111,6 +139,21 @@ impl<T: Real> Gaussians<'_, T> {
             Scales::Log(s) => s[i].map(T::exp),
             Scales::Linear(s) => s[i],
         }
+    }
+
+    /// Deformation gradient `F` of Gaussian `i`, if any.
+    #[inline]
+    pub fn deformation_f(&self, i: usize) -> Option<&[T; 9]> {
+        self.deformation.as_ref().map(|d| &d.f[i])
+    }
+
+    /// SH rotation `R` of Gaussian `i`, if any.
+    #[inline]
+    pub fn sh_rotation(&self, i: usize) -> Option<&[T; 9]> {
+        self.deformation
+            .as_ref()
+            .and_then(|d| d.sh_rotation)
+            .map(|r| &r[i])
     }
 
     /// Activated opacity of Gaussian `i`.

@@ -18,6 +18,16 @@
 //! opacities (and logits), RGB or SH coefficients, plus `dL/d means2d` (pixels) for
 //! densification. Gradients through the 0.99 alpha clamp and clamped SH channels are 0.
 //!
+//! Deformed Gaussians (PhysGaussian, Xie et al. 2024, §4.1): with
+//! [`Gaussians::deformation`] each Gaussian carries a deformation gradient `F` and optionally
+//! an SH rotation `R` (row-major 3×3, [`Deformation`]). It is rendered at its mean with
+//! covariance `F Σ Fᵀ` (`Σ = R(q) S Sᵀ R(q)ᵀ`, i.e. `M = F R(q) diag(s)`, `Σ' = M Mᵀ`) and
+//! SH colour evaluated at `Rᵀ·d`, `d` the unit view direction. The backward adds `dL/dF`
+//! (`= dL/dM·(R(q) diag(s))ᵀ`, the rest `Fᵀ dL/dM` going on to scales and quaternions) and
+//! `dL/dR` (`dL/dR[j][i] = d_j·(dL/dd')_i`, `d' = Rᵀd`, and `R·dL/dd'` on to the mean), so
+//! a simulation's adjoint can take them with `dL/d means`. Without a deformation the code
+//! path, image and gradients are those of the canonical Gaussians, bit for bit.
+//!
 //! ```
 //! use pipe_render::{Camera, Colors, Gaussians, Opacities, RenderOptions, Scales, backward, render};
 //!
@@ -37,6 +47,7 @@
 //!     quats: &quats,
 //!     opacities: Opacities::Logit(&logits),
 //!     colors: Colors::Rgb(&rgb),
+//!     deformation: None,
 //! };
 //! let opts = RenderOptions::default();
 //! let out = render(&g, &cam, &opts)?;
@@ -65,7 +76,7 @@ pub use backward::{BackwardTimings, Gradients, backward};
 pub use camera::{Camera, TILE};
 pub use error::RenderError;
 pub use forward::{ForwardTimings, RenderOptions, Rendered, project_all, render};
-pub use gaussians::{Colors, Gaussians, Opacities, Scales, sh_coeff_count, sigmoid};
+pub use gaussians::{Colors, Deformation, Gaussians, Opacities, Scales, sh_coeff_count, sigmoid};
 pub use project::{ProjectedGaussian, ProjectedGrad};
 pub use real::Real;
 pub use splat::{ALPHA_MAX, ALPHA_MIN, T_MIN};

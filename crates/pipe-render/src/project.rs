@@ -2,10 +2,13 @@
 //! and its hand-written backward.
 //!
 //! Forward, per Gaussian:
-//! `Σ = R(q) S Sᵀ R(q)ᵀ`, `t = R_v·mean + t_v`, `Σ2D = J R_v Σ R_vᵀ Jᵀ + eps2d·I` with the
-//! perspective Jacobian `J` evaluated at the frustum-clamped `t` (gsplat `_persp_proj`),
+//! `Σ = M Mᵀ` with `M = R(q)·diag(s)`, or `M = F·R(q)·diag(s)` under a deformation `F`
+//! (`Σ = F R S Sᵀ Rᵀ Fᵀ`, PhysGaussian §4.1), `t = R_v·mean + t_v`,
+//! `Σ2D = J R_v Σ R_vᵀ Jᵀ + eps2d·I` with the perspective Jacobian `J` evaluated at the
+//! frustum-clamped `t` (gsplat `_persp_proj`),
 //! conic `Σ2D⁻¹`, `mean2d = (fx·tx/tz + cx, fy·ty/tz + cy)` (unclamped),
-//! `radius = ceil(3·sqrt(λ_max))` and the 16×16 tile rectangle (3DGS `getRect`).
+//! `radius = ceil(3·sqrt(λ_max))` and the 16×16 tile rectangle (3DGS `getRect`). SH colours
+//! are evaluated at the view direction `d`, or at `Rᵀ·d` under a deformation's SH rotation.
 
 use crate::camera::{Camera, TILE};
 use crate::gaussians::{Colors, Gaussians, sh_coeff_count};
@@ -125,13 +128,38 @@ fn rotmat_vjp<T: Real>(q: [T; 4], g: &[[T; 3]; 3]) -> [T; 4] {
     [gw, gx, gy, gz]
 }
 
+/// `F·A` for a row-major `F`.
+#[inline]
+fn left_multiply<T: Real>(f: &[T; 9], a: [[T; 3]; 3]) -> [[T; 3]; 3] {
+    std::array::from_fn(|i| {
+        std::array::from_fn(|j| {
+            f[3 * i] * a[0][j] + f[3 * i + 1] * a[1][j] + f[3 * i + 2] * a[2][j]
+        })
+    })
+}
+
+/// [`geometry`] with `M = F·R(q)·diag(s)` when Gaussian `i` carries a deformation.
+#[inline(always)]
+fn geometry_of<T: Real>(
+    g: &Gaussians<'_, T>,
+    i: usize,
+    cam: &Camera<T>,
+    ctx: &ProjectCtx<T>,
+) -> Option<Geometry<T>> {
+    let (mean, scale, quat) = (g.means[i], g.scale(i), g.quats[i]);
+    match g.deformation_f(i) {
+        None => geometry(cam, ctx, mean, scale, quat, |a| a),
+        Some(f) => geometry(cam, ctx, mean, scale, quat, |a| left_multiply(f, a)),
+    }
+}
+
 /// Quantities shared by the forward and the backward of one Gaussian.
 struct Geometry<T> {
     q: [T; 4],
     qnorm: T,
     rot: [[T; 3]; 3],
     scale: [T; 3],
-    /// `M = R(q)·diag(s)`.
+    /// `M = R(q)·diag(s)`, or `M = F·R(q)·diag(s)` under a deformation.
     m: [[T; 3]; 3],
     /// `Σ = M Mᵀ`.
     sigma: [[T; 3]; 3],
@@ -145,17 +173,24 @@ struct Geometry<T> {
     cov: [T; 3],
 }
 
-#[inline]
+/// [`Geometry`] of a Gaussian; `deform` maps `R(q)·diag(s)` to `M` (the identity, or `F·`
+/// under a deformation: one instance each, so the canonical path is the plain 3DGS code).
+/// Out of line, as the compiler chose before deformations existed: inlined into
+/// [`geometry_of`] the canonical path's projection ran 6 % more instructions (cachegrind).
+#[inline(never)]
 fn geometry<T: Real>(
     cam: &Camera<T>,
     ctx: &ProjectCtx<T>,
     mean: [T; 3],
     scale: [T; 3],
     quat: [T; 4],
+    deform: impl Fn([[T; 3]; 3]) -> [[T; 3]; 3],
 ) -> Option<Geometry<T>> {
     let (q, qnorm) = normalize_quat(quat)?;
     let rot = quat_to_rotmat(q);
-    let m: [[T; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| rot[i][j] * scale[j]));
+    let m = deform(std::array::from_fn(|i| {
+        std::array::from_fn(|j| rot[i][j] * scale[j])
+    }));
     let sigma: [[T; 3]; 3] = std::array::from_fn(|i| {
         std::array::from_fn(|j| m[i][0] * m[j][0] + m[i][1] * m[j][1] + m[i][2] * m[j][2])
     });
@@ -211,11 +246,21 @@ pub(crate) fn project_one<T: Real>(
 ) -> ProjectedGaussian<T> {
     let mean = g.means[i];
     let opacity = g.opacity(i);
+    // A non-finite SH rotation would give NaN colours that the clamp at 0 hides: cull.
+    let mut turned_finite = true;
     let (color, color_clamped) = match g.colors {
         Colors::Rgb(c) => (c[i], [false; 3]),
         Colors::Sh { degree, coeffs } => {
             let k = sh_coeff_count(degree);
             let (dir, _) = sh::view_dir(mean, ctx.center);
+            let dir = match g.sh_rotation(i) {
+                None => dir,
+                Some(r) => {
+                    let turned = sh::rotate_dir(r, dir);
+                    turned_finite = turned.iter().all(|v| v.is_finite());
+                    turned
+                }
+            };
             sh::eval(degree, &coeffs[i * k..(i + 1) * k], dir)
         }
     };
@@ -225,7 +270,7 @@ pub(crate) fn project_one<T: Real>(
         opacity,
         ..Default::default()
     };
-    let Some(geo) = geometry(cam, ctx, mean, g.scale(i), g.quats[i]) else {
+    let Some(geo) = geometry_of(g, i, cam, ctx) else {
         return sanitize(out);
     };
     let [a, b, c] = geo.cov;
@@ -258,7 +303,8 @@ pub(crate) fn project_one<T: Real>(
         && r.is_finite()
         && out.conic.iter().chain(&out.mean2d).all(|v| v.is_finite())
         && opacity.is_finite()
-        && color.iter().all(|v| v.is_finite());
+        && color.iter().all(|v| v.is_finite())
+        && turned_finite;
     let in_front = t[2] > cam.near;
     let positive_det = det > T::ZERO;
     let cull = !in_front || !positive_det || !finite || rect_empty;
@@ -307,9 +353,20 @@ pub(crate) struct ParamGrad<T> {
     pub quat: [T; 4],
 }
 
+/// Where the backward of one Gaussian writes its gradients besides [`ParamGrad`].
+#[derive(Debug)]
+pub(crate) struct GradSlots<'a, T> {
+    /// `dL/d sh` of the Gaussian (empty for [`Colors::Rgb`]).
+    pub sh: &'a mut [[T; 3]],
+    /// `dL/dF` (row-major), when the Gaussians carry a deformation.
+    pub f: Option<&'a mut [T; 9]>,
+    /// `dL/dR` (row-major), when they carry an SH rotation.
+    pub r: Option<&'a mut [T; 9]>,
+}
+
 /// Backward of [`project_one`] for a visible Gaussian: chains `dL/d(mean2d, conic)` to the
-/// mean, scale and quaternion; SH gradients go to `g_sh` (returns the mean gradient through
-/// the view direction added in).
+/// mean, scale and quaternion (returned, the mean gradient through the view direction added
+/// in); SH, `F` and SH-rotation gradients go to `slots`.
 pub(crate) fn project_one_vjp<T: Real>(
     g: &Gaussians<'_, T>,
     i: usize,
@@ -317,24 +374,44 @@ pub(crate) fn project_one_vjp<T: Real>(
     ctx: &ProjectCtx<T>,
     p: &ProjectedGaussian<T>,
     up: &ProjectedGrad<T>,
-    g_sh: &mut [[T; 3]],
+    slots: GradSlots<'_, T>,
 ) -> ParamGrad<T> {
     let mean = g.means[i];
     let mut out = ParamGrad::default();
     if let Colors::Sh { degree, coeffs } = g.colors {
         let k = sh_coeff_count(degree);
+        let coeffs = &coeffs[i * k..(i + 1) * k];
         let (dir, dist) = sh::view_dir(mean, ctx.center);
-        out.mean = sh::eval_vjp(
-            degree,
-            &coeffs[i * k..(i + 1) * k],
-            dir,
-            dist,
-            p.color_clamped,
-            up.color,
-            g_sh,
-        );
+        match g.sh_rotation(i) {
+            None => {
+                out.mean = sh::eval_vjp(
+                    degree,
+                    coeffs,
+                    dir,
+                    dist,
+                    p.color_clamped,
+                    up.color,
+                    slots.sh,
+                );
+            }
+            Some(r) => {
+                let (g_mean, g_r) = sh::eval_rotated_vjp(
+                    degree,
+                    coeffs,
+                    (dir, dist),
+                    r,
+                    p.color_clamped,
+                    up.color,
+                    slots.sh,
+                );
+                out.mean = g_mean;
+                if let Some(slot) = slots.r {
+                    *slot = g_r;
+                }
+            }
+        }
     }
-    let Some(geo) = geometry(cam, ctx, mean, g.scale(i), g.quats[i]) else {
+    let Some(geo) = geometry_of(g, i, cam, ctx) else {
         debug_assert!(false, "visible Gaussian {i} without geometry");
         return out;
     };
@@ -396,19 +473,39 @@ pub(crate) fn project_one_vjp<T: Real>(
     for (c, gm) in out.mean.iter_mut().enumerate() {
         *gm += rv[0][c] * g_t[0] + rv[1][c] * g_t[1] + rv[2][c] * g_t[2];
     }
-    // Σ = M Mᵀ: dL/dM = 2 G_Σ M (G_Σ symmetric); M = R diag(s).
+    // Σ = M Mᵀ: dL/dM = 2 G_Σ M (G_Σ symmetric).
     let m = &geo.m;
     let g_m: [[T; 3]; 3] = std::array::from_fn(|r| {
         std::array::from_fn(|c| {
             two * (g_sigma[r][0] * m[0][c] + g_sigma[r][1] * m[1][c] + g_sigma[r][2] * m[2][c])
         })
     });
+    // M = F·A, A = R diag(s): dL/dF = dL/dM·Aᵀ, dL/dA = Fᵀ·dL/dM (M = A without a
+    // deformation).
     let rot = &geo.rot;
+    let g_a = match g.deformation_f(i) {
+        None => g_m,
+        Some(f) => {
+            if let Some(slot) = slots.f {
+                let a: [[T; 3]; 3] =
+                    std::array::from_fn(|k| std::array::from_fn(|c| rot[k][c] * geo.scale[c]));
+                *slot = std::array::from_fn(|e| {
+                    let (r, k) = (e / 3, e % 3);
+                    g_m[r][0] * a[k][0] + g_m[r][1] * a[k][1] + g_m[r][2] * a[k][2]
+                });
+            }
+            std::array::from_fn(|k| {
+                std::array::from_fn(|c| {
+                    f[k] * g_m[0][c] + f[3 + k] * g_m[1][c] + f[6 + k] * g_m[2][c]
+                })
+            })
+        }
+    };
     out.scale = std::array::from_fn(|c| {
-        g_m[0][c] * rot[0][c] + g_m[1][c] * rot[1][c] + g_m[2][c] * rot[2][c]
+        g_a[0][c] * rot[0][c] + g_a[1][c] * rot[1][c] + g_a[2][c] * rot[2][c]
     });
     let g_rot: [[T; 3]; 3] =
-        std::array::from_fn(|r| std::array::from_fn(|c| g_m[r][c] * geo.scale[c]));
+        std::array::from_fn(|r| std::array::from_fn(|c| g_a[r][c] * geo.scale[c]));
     let g_qn = rotmat_vjp(geo.q, &g_rot);
     // q_n = q/|q|: dL/dq = (g - q_n (q_n·g)) / |q|.
     let qn = geo.q;

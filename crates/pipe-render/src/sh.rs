@@ -1,7 +1,8 @@
 //! Real spherical harmonics up to degree 3 in the 3DGS / gsplat basis and sign convention.
 //!
 //! `rgb = max(0, Σ_k Y_k(d)·sh_k + 0.5)` with `d` the unit vector from the camera centre to
-//! the Gaussian mean. Coefficients from Sloan, "Stupid SH tricks" (as used by 3DGS).
+//! the Gaussian mean (or `Rᵀ·d` for SH turned with a deformation's rotation `R`,
+//! [`rotate_dir`]). Coefficients from Sloan, "Stupid SH tricks" (as used by 3DGS).
 
 use crate::real::Real;
 
@@ -150,6 +151,13 @@ pub fn eval<T: Real>(degree: u32, coeffs: &[[T; 3]], dir: [T; 3]) -> ([T; 3], [b
     (raw.map(|r| r.max(T::ZERO)), clamped)
 }
 
+/// `Rᵀ·d` for a row-major 3×3 `R` (`r[3·row + col]`): SH turned with `R` show towards `d`
+/// what they showed towards `Rᵀ·d` (PhysGaussian §4.1).
+#[inline]
+pub fn rotate_dir<T: Real>(r: &[T; 9], d: [T; 3]) -> [T; 3] {
+    std::array::from_fn(|i| r[i] * d[0] + r[3 + i] * d[1] + r[6 + i] * d[2])
+}
+
 /// Backward of [`eval`]: writes `dL/d coeffs` into `g_coeffs` and returns `dL/d mean` through
 /// the view direction (`dist` is `|mean - center|`).
 #[inline]
@@ -162,6 +170,51 @@ pub fn eval_vjp<T: Real>(
     g_rgb: [T; 3],
     g_coeffs: &mut [[T; 3]],
 ) -> [T; 3] {
+    let w = coeffs_vjp(degree, coeffs, dir, clamped, g_rgb, g_coeffs);
+    if degree == 0 || dist <= T::ZERO {
+        return [T::ZERO; 3];
+    }
+    let g_dir = basis_vjp(degree, dir, &w);
+    normalize_vjp(dir, dist, g_dir)
+}
+
+/// Backward of [`eval`] at the turned direction `d' = Rᵀ·d` ([`rotate_dir`]), `(d, dist)` from
+/// [`view_dir`]: writes `dL/d coeffs` into `g_coeffs` and returns `(dL/d mean, dL/dR)`, with
+/// `dL/dR[j][i] = d_j·(dL/dd')_i` and `dL/dd = R·dL/dd'` chained through the normalisation.
+#[inline]
+pub fn eval_rotated_vjp<T: Real>(
+    degree: u32,
+    coeffs: &[[T; 3]],
+    (dir, dist): ([T; 3], T),
+    r: &[T; 9],
+    clamped: [bool; 3],
+    g_rgb: [T; 3],
+    g_coeffs: &mut [[T; 3]],
+) -> ([T; 3], [T; 9]) {
+    let turned = rotate_dir(r, dir);
+    let w = coeffs_vjp(degree, coeffs, turned, clamped, g_rgb, g_coeffs);
+    if degree == 0 || dist <= T::ZERO {
+        return ([T::ZERO; 3], [T::ZERO; 9]);
+    }
+    let g_turned = basis_vjp(degree, turned, &w);
+    let g_r = std::array::from_fn(|e| dir[e / 3] * g_turned[e % 3]);
+    let g_dir = std::array::from_fn(|j| {
+        r[3 * j] * g_turned[0] + r[3 * j + 1] * g_turned[1] + r[3 * j + 2] * g_turned[2]
+    });
+    (normalize_vjp(dir, dist, g_dir), g_r)
+}
+
+/// Writes `dL/d coeffs = Y(dir)·g_raw` into `g_coeffs` and returns the per-basis weights
+/// `w_k = Σ_ch coeffs_k·g_raw` that [`basis_vjp`] takes (`g_raw` is 0 on clamped channels).
+#[inline]
+fn coeffs_vjp<T: Real>(
+    degree: u32,
+    coeffs: &[[T; 3]],
+    dir: [T; 3],
+    clamped: [bool; 3],
+    g_rgb: [T; 3],
+    g_coeffs: &mut [[T; 3]],
+) -> [T; 16] {
     let g_raw: [T; 3] = std::array::from_fn(|ch| if clamped[ch] { T::ZERO } else { g_rgb[ch] });
     let y = basis(degree, dir);
     let mut w = [T::ZERO; 16];
@@ -171,11 +224,12 @@ pub fn eval_vjp<T: Real>(
             w[k] += c[ch] * g_raw[ch];
         }
     }
-    if degree == 0 || dist <= T::ZERO {
-        return [T::ZERO; 3];
-    }
-    let g_dir = basis_vjp(degree, dir, &w);
-    // d = v/|v|: dL/dv = (g - d (d·g)) / |v|
+    w
+}
+
+/// `d = v/|v|`: `dL/dv = (g - d (d·g)) / |v|`.
+#[inline]
+fn normalize_vjp<T: Real>(dir: [T; 3], dist: T, g_dir: [T; 3]) -> [T; 3] {
     let dot = g_dir[0] * dir[0] + g_dir[1] * dir[1] + g_dir[2] * dir[2];
     std::array::from_fn(|i| (g_dir[i] - dir[i] * dot) / dist)
 }

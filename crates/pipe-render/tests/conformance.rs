@@ -77,6 +77,7 @@ fn run_case<T: Real>(file: &str, tol: &Tol) {
         quats: &quats,
         opacities: Opacities::Linear(&opac),
         colors,
+        deformation: None,
     };
     let opts = RenderOptions {
         background: [bgv[0], bgv[1], bgv[2]],

@@ -98,6 +98,7 @@ fn degenerate_gaussians() {
         quats: &quats,
         opacities: Opacities::Logit(&logits),
         colors: Colors::Rgb(&rgb),
+        deformation: None,
     };
     let (out, _) = render_and_grad(&g, &cam);
     let vis: Vec<bool> = out.projected.iter().map(|p| p.visible()).collect();

@@ -12,11 +12,19 @@
 //! Gaussian beyond gsplat's frustum clamp that is still visible (zero gradient through the
 //! clamped ratio) and a 0.99-clamped opaque Gaussian. Discontinuities (1/255 skip, radius
 //! ceil) are far from ±1e-6 for these scenes.
+//!
+//! Deformed variants (PhysGaussian §4.1) give every Gaussian a non-symmetric deformation
+//! gradient `F = Q·(I + shear)·diag(stretch)` (rotation, shear and stretch, det > 0) and an
+//! SH rotation `R`; all 9 entries of each `F` and `R` are perturbed (`R` entrywise, which
+//! leaves the rotations: the colour is linear in `R`), and the mean, scale, quaternion,
+//! opacity and colour gradients are checked again with the deformation present.
 
 mod common;
 
 use common::Rng;
-use pipe_render::{Camera, Colors, Gaussians, Opacities, RenderOptions, Scales, backward, render};
+use pipe_render::{
+    Camera, Colors, Deformation, Gaussians, Opacities, RenderOptions, Scales, backward, render,
+};
 
 /// Rotated camera, 48×40 pixels, hfov 60°.
 fn camera() -> Camera<f64> {
@@ -65,9 +73,15 @@ struct Params {
     opac: Vec<f64>,
     rgb: Vec<[f64; 3]>,
     sh: Vec<[f64; 3]>,
+    /// Deformation gradients (row-major), used when `deform`.
+    f: Vec<[f64; 9]>,
+    /// SH rotations (row-major), used when `deform` and `rotate_sh`.
+    r: Vec<[f64; 9]>,
     /// log-scales / logits (true) or linear scales / opacities (false).
     log_params: bool,
     sh_degree: Option<u32>,
+    deform: bool,
+    rotate_sh: bool,
 }
 
 impl Params {
@@ -92,6 +106,10 @@ impl Params {
                 },
                 None => Colors::Rgb(&self.rgb),
             },
+            deformation: self.deform.then_some(Deformation {
+                f: &self.f,
+                sh_rotation: self.rotate_sh.then_some(&self.r[..]),
+            }),
         }
     }
     fn kinds(&mut self) -> Vec<(&'static str, &mut [f64])> {
@@ -106,8 +124,71 @@ impl Params {
         } else {
             v.push(("rgb", self.rgb.as_flattened_mut()));
         }
+        if self.deform {
+            v.push(("F", self.f.as_flattened_mut()));
+        }
+        if self.deform && self.rotate_sh {
+            v.push(("R", self.r.as_flattened_mut()));
+        }
         v
     }
+
+    /// Gives every Gaussian a random deformation gradient and SH rotation.
+    fn with_deformation(mut self, rotate_sh: bool, seed: u64) -> Self {
+        let mut rng = Rng(seed);
+        let n = self.means.len();
+        self.f = (0..n)
+            .map(|_| {
+                let q = rotation(&mut rng);
+                let mut shear = [[0.0; 3]; 3];
+                for (i, row) in shear.iter_mut().enumerate() {
+                    for (j, e) in row.iter_mut().enumerate() {
+                        *e = if i == j { 1.0 } else { rng.range(-0.3, 0.3) };
+                    }
+                }
+                let stretch: [f64; 3] = std::array::from_fn(|_| rng.range(0.6, 1.5));
+                let qs = matmul(&q, &shear);
+                std::array::from_fn(|e| qs[e / 3][e % 3] * stretch[e % 3])
+            })
+            .collect();
+        self.r = (0..n)
+            .map(|_| {
+                let q = rotation(&mut rng);
+                std::array::from_fn(|e| q[e / 3][e % 3])
+            })
+            .collect();
+        self.deform = true;
+        self.rotate_sh = rotate_sh;
+        self
+    }
+}
+
+/// A random rotation (from a random unit quaternion).
+fn rotation(rng: &mut Rng) -> [[f64; 3]; 3] {
+    let q: [f64; 4] = std::array::from_fn(|_| rng.normal());
+    let n = q.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let [w, x, y, z] = q.map(|c| c / n);
+    [
+        [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y - w * z),
+            2.0 * (x * z + w * y),
+        ],
+        [
+            2.0 * (x * y + w * z),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z - w * x),
+        ],
+        [
+            2.0 * (x * z - w * y),
+            2.0 * (y * z + w * x),
+            1.0 - 2.0 * (x * x + y * y),
+        ],
+    ]
+}
+
+fn matmul(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|k| a[i][k] * b[k][j]).sum()))
 }
 
 fn scene(log_params: bool, sh_degree: Option<u32>, seed: u64) -> Params {
@@ -133,8 +214,12 @@ fn scene(log_params: bool, sh_degree: Option<u32>, seed: u64) -> Params {
         opac: vec![],
         rgb: vec![],
         sh: vec![],
+        f: vec![],
+        r: vec![],
         log_params,
         sh_degree,
+        deform: false,
+        rotate_sh: false,
     };
     let k = sh_degree.map_or(0, |d| ((d + 1) * (d + 1)) as usize);
     let push = |p: &mut Params, rng: &mut Rng, mean: [f64; 3], scale: [f64; 3], o: f64| {
@@ -205,7 +290,7 @@ fn run(p0: &Params) {
         "Gaussians must overlap"
     );
     let gr = backward(&g, &cam, &opts, &fwd, &w, Some(&wa)).unwrap();
-    let analytic: Vec<(&str, Vec<f64>)> = vec![
+    let mut analytic: Vec<(&str, Vec<f64>)> = vec![
         ("means", gr.means.as_flattened().to_vec()),
         (
             "scales",
@@ -233,6 +318,16 @@ fn run(p0: &Params) {
             },
         ),
     ];
+    if p0.deform {
+        analytic.push(("F", gr.deformation.as_flattened().to_vec()));
+    } else {
+        assert!(gr.deformation.is_empty(), "no deformation, no dL/dF");
+    }
+    if p0.deform && p0.rotate_sh {
+        analytic.push(("R", gr.sh_rotation.as_flattened().to_vec()));
+    } else {
+        assert!(gr.sh_rotation.is_empty(), "no SH rotation, no dL/dR");
+    }
     let h = 1e-6;
     let mut p = p0.clone();
     assert_eq!(p.kinds().len(), analytic.len());
@@ -279,6 +374,36 @@ fn fd_sh3_log_params() {
 #[test]
 fn fd_sh1_linear_params() {
     run(&scene(false, Some(1), 4));
+}
+
+#[test]
+fn fd_deformed_sh3_log_params() {
+    run(&scene(true, Some(3), 3).with_deformation(true, 5));
+}
+
+#[test]
+fn fd_deformed_sh2_linear_params() {
+    run(&scene(false, Some(2), 4).with_deformation(true, 7));
+}
+
+/// `F` without an SH rotation, RGB colours.
+#[test]
+fn fd_deformed_rgb_no_sh_rotation() {
+    run(&scene(true, None, 1).with_deformation(false, 8));
+}
+
+/// An SH rotation with RGB colours is accepted and gets zero gradients.
+#[test]
+fn sh_rotation_with_rgb_colours_has_zero_gradient() {
+    let p = scene(true, None, 2).with_deformation(true, 9);
+    let cam = camera();
+    let opts = RenderOptions::default();
+    let out = render(&p.gaussians(), &cam, &opts).unwrap();
+    let d = vec![[1.0; 3]; cam.n_pixels()];
+    let gr = backward(&p.gaussians(), &cam, &opts, &out, &d, None).unwrap();
+    assert_eq!(gr.sh_rotation.len(), p.means.len());
+    assert!(gr.sh_rotation.iter().flatten().all(|&g| g == 0.0));
+    assert!(gr.deformation.iter().flatten().any(|&g| g != 0.0));
 }
 
 #[test]

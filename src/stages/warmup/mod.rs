@@ -809,6 +809,7 @@ mod tests {
             quats: &quats,
             opacities: pipe_render::Opacities::Logit(&logits),
             colors: pipe_render::Colors::Rgb(&rgb),
+            deformation: None,
         };
         let cam = camera();
         let b = [0.3f32, 0.6, 0.9];

@@ -118,6 +118,7 @@ impl<T: Real> Scene<T> {
             quats: &self.quats,
             opacities: pipe_render::Opacities::Logit(&self.logits),
             colors: pipe_render::Colors::Rgb(&self.rgb),
+            deformation: None,
         }
     }
     pub fn gaussians_sh(&self) -> pipe_render::Gaussians<'_, T> {
