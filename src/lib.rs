@@ -8,6 +8,7 @@
 pub mod cli;
 pub mod export;
 pub mod io;
+pub mod physics;
 pub mod pipeline;
 pub mod preview;
 pub mod scene;

@@ -89,6 +89,80 @@ pub struct SceneSpec {
     /// Material family of the simulated object.
     #[serde(default)]
     pub material: Option<MaterialFamily>,
+    /// Density of the object (kg/m³); PAC-NeRF assumes 1000.
+    #[serde(default = "default_density")]
+    pub density: f64,
+    /// Gravity (m/s²).
+    #[serde(default = "default_gravity")]
+    pub gravity: [f64; 3],
+    /// What acts on the object besides gravity, in the simulation file's syntax (`pipe
+    /// simulate`); default: a sticky ground at `y = 0`, as in every PAC-NeRF scene. An empty
+    /// list leaves the object in free fall.
+    #[serde(default = "default_boundaries")]
+    pub boundaries: Vec<BoundaryItem>,
+}
+
+fn default_density() -> f64 {
+    1000.0
+}
+
+fn default_gravity() -> [f64; 3] {
+    [0.0, -9.8, 0.0]
+}
+
+fn default_boundaries() -> Vec<BoundaryItem> {
+    vec![BoundaryItem::Ground {
+        y: 0.0,
+        condition: BoundaryCondition::Sticky,
+    }]
+}
+
+/// How a boundary treats the grid velocities it acts on.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum BoundaryCondition {
+    /// Velocity set to zero.
+    #[default]
+    Sticky,
+    /// Normal component removed, tangential kept.
+    Slip,
+    /// Normal component removed only when moving into the obstacle.
+    Separate,
+}
+
+/// One item of `scene.boundaries` (the simulation file's `boundaries:` syntax).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum BoundaryItem {
+    /// The plane `y = y` (m), free side above.
+    Ground {
+        /// Height (m).
+        #[serde(default)]
+        y: f64,
+        /// Treatment.
+        #[serde(default)]
+        condition: BoundaryCondition,
+    },
+    /// The plane through `point` (m) with `normal` pointing into the free side.
+    HalfSpace {
+        /// A point on the plane (m).
+        point: [f64; 3],
+        /// Normal (into the free side).
+        normal: [f64; 3],
+        /// Treatment.
+        #[serde(default)]
+        condition: BoundaryCondition,
+    },
+    /// A solid box obstacle (m).
+    Box {
+        /// Lower corner (m).
+        min: [f64; 3],
+        /// Upper corner (m).
+        max: [f64; 3],
+        /// Treatment.
+        #[serde(default)]
+        condition: BoundaryCondition,
+    },
 }
 
 /// One stage as resolved from the file.

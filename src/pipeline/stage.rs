@@ -296,6 +296,12 @@ impl<'a> StageContext<'a> {
     pub fn metric(&mut self, row: MetricRow) {
         self.metrics.push(row);
     }
+
+    /// The flag that turns true when the user asks to stop (for loops inside kernels that
+    /// cannot call [`Self::check_interrupted`]).
+    pub fn interrupt_flag(&self) -> &'a AtomicBool {
+        self.interrupt
+    }
 }
 
 /// The object-safe interface the runner uses. Implement [`TypedStage`] instead.

@@ -8,4 +8,5 @@ pub mod metrics;
 pub mod neighbors;
 pub mod splat;
 pub mod table;
+pub mod targets;
 pub mod visual_hull;

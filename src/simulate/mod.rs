@@ -478,13 +478,7 @@ pub fn frame_step<M: Constitutive>(
     let frame_dt = spec.frame_dt;
     let t0 = f64::from(frame - 1) * frame_dt;
     let max_speed = state.v.iter().map(|v| v.length()).fold(0.0, f64::max);
-    let speed = speed_bound(
-        &state.v,
-        &mat.mass,
-        &body.setup.forces,
-        t0,
-        t0 + frame_dt,
-    );
+    let speed = speed_bound(&state.v, &mat.mass, &body.setup.forces, t0, t0 + frame_dt);
     let stable = stable_step_at_speed(
         sim.model(),
         mat,
@@ -575,7 +569,6 @@ pub fn frame_step<M: Constitutive>(
     }
 }
 
-
 /// Everything the monomorphised run needs.
 struct Job<'a> {
     spec: &'a SimSpec,
@@ -639,7 +632,14 @@ impl Job<'_> {
         state: &State,
         frame: u32,
     ) -> Result<FrameStep, SimulateError> {
-        frame_step(self.spec, &self.body, &self.body.material, sim, state, frame)
+        frame_step(
+            self.spec,
+            &self.body,
+            &self.body.material,
+            sim,
+            state,
+            frame,
+        )
     }
 
     fn simulate<M: Constitutive + Clone + 'static>(
@@ -663,7 +663,9 @@ impl Job<'_> {
         };
         let sim = Simulator::new(model, cfg).map_err(setup_err)?;
         // Validated and held in the domain once, then kept in the engine from frame to frame.
-        let mut stepper = sim.stepper(&mut state, &self.body.material).map_err(setup_err)?;
+        let mut stepper = sim
+            .stepper(&mut state, &self.body.material)
+            .map_err(setup_err)?;
         stepper.watch_contacts();
         // Refuse an unstable fixed substep count before writing anything.
         if self.frames > 1 {

@@ -3,6 +3,8 @@
 
 pub mod ingest;
 pub mod init;
+pub mod material;
+pub mod velocity;
 pub mod warmup;
 
 use crate::pipeline::stage::Registry;
@@ -13,4 +15,6 @@ pub fn builtin() -> Registry {
         .with(ingest::Ingest)
         .with(init::Init)
         .with(warmup::Warmup)
+        .with(velocity::Velocity)
+        .with(material::MaterialStage)
 }

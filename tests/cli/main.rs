@@ -4,6 +4,7 @@ mod deformed_render;
 mod formats;
 mod ingest;
 mod init;
+mod physics;
 mod resume;
 mod runner;
 mod simulate;

@@ -1,0 +1,16 @@
+//! Physics from video: what the `velocity` and `material` stages (and later `evaluate` and
+//! `edit`) share. The canonical Gaussians become a simulated [`object::Object`] (the same
+//! [`crate::simulate::Body`] as `pipe simulate`); a [`rollout::Rollout`] simulates its frames
+//! and differentiates a per-frame loss back to the material's parameters
+//! ([`params`]) and the initial velocity; the loss of a frame is the image loss of the
+//! Gaussians posed at its state ([`pose`], [`views`]).
+
+pub mod adam;
+pub mod fit;
+pub mod object;
+pub mod params;
+pub mod particles;
+pub mod pose;
+pub mod rollout;
+pub mod track;
+pub mod views;

@@ -1,0 +1,271 @@
+//! The simulated object of a capture: its canonical Gaussians become simulation particles,
+//! as `pipe simulate` makes a 3DGS PLY one (the same [`Body`]): each Gaussian is a particle,
+//! a closed splat surface is filled with particles inside (simulated, not rendered), and the
+//! mass follows `scene.density` and the filled volume.
+//!
+//! Floaters (Gaussians apart from the object: clusters of grid cells not touching the main
+//! one and holding under 1 % of its opacity) are dropped: a floater that stayed where it was
+//! would be seen in every frame as the object moved on.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use glam::{DVec3, IVec3};
+
+use crate::pipeline::spec::{BoundaryCondition, BoundaryItem, SceneSpec};
+use crate::scene::gaussians::{Gaussians, sh_coeffs};
+use crate::simulate::fill::Splat;
+use crate::simulate::spec::{MaterialSpec, SimSpec, family_name, fmt_num};
+use crate::simulate::{Body, SimulateError};
+
+/// Cells of the object's grid across its largest extent when a stage does not say.
+pub const DEFAULT_CELLS: f64 = 24.0;
+
+/// What a physics stage's object is built from, besides its Gaussians.
+#[derive(Debug, Clone)]
+pub struct ObjectSettings<'a> {
+    /// The pipeline's scene section (density, gravity, boundaries).
+    pub scene: &'a SceneSpec,
+    /// Time between frames (s).
+    pub frame_dt: f64,
+    /// Grid cells across the object's largest extent.
+    pub cells: f64,
+    /// The material to build the body with (its masses and volumes do not depend on it).
+    pub material: MaterialSpec,
+    /// Frames the body is simulated for (only the summary's time estimates use it).
+    pub frames: u32,
+    /// Names the source in messages (e.g. the pipeline file and stage).
+    pub label: PathBuf,
+}
+
+/// The simulated object.
+#[derive(Debug, Clone)]
+pub struct Object {
+    /// The simulated Gaussians, canonical: Gaussian `i` is particle `i` of `body`.
+    pub gaussians: Gaussians,
+    /// Gaussians dropped as floaters.
+    pub floaters: usize,
+    /// The simulation file the body was built from (at the material it was built with).
+    pub spec: SimSpec,
+    /// Particles (the Gaussians, then the fillers), their settings and material.
+    pub body: Body,
+}
+
+impl Object {
+    /// Particles (Gaussians and fillers).
+    pub fn particles(&self) -> usize {
+        self.body.state.len()
+    }
+
+    /// Particles that are Gaussians (the first ones).
+    pub fn rendered(&self) -> usize {
+        self.gaussians.len()
+    }
+
+    /// Total mass (kg).
+    pub fn mass(&self) -> f64 {
+        self.body.material.mass.iter().sum()
+    }
+
+    /// The mass-weighted centre (m) of the initial state.
+    pub fn centre_of_mass(&self) -> DVec3 {
+        let m = &self.body.material.mass;
+        let total: f64 = m.iter().sum();
+        self.body
+            .state
+            .x
+            .iter()
+            .zip(m)
+            .map(|(x, m)| *x * *m)
+            .sum::<DVec3>()
+            / total
+    }
+
+    /// The object of `gaussians` (canonical, e.g. the `warmup` fit).
+    pub fn build(gaussians: &Gaussians, s: &ObjectSettings<'_>) -> Result<Self, SimulateError> {
+        let x: Vec<DVec3> = gaussians
+            .position
+            .iter()
+            .map(|p| DVec3::new(p[0].into(), p[1].into(), p[2].into()))
+            .collect();
+        let (lo, hi) =
+            crate::scene::neighbors::bounds(&x).ok_or_else(|| SimulateError::NoParticles {
+                path: s.label.clone(),
+            })?;
+        let dx = (hi - lo).max_element().max(1e-6) / s.cells;
+        let keep = main_body(gaussians, dx);
+        let kept = select(gaussians, &keep);
+        let floaters = gaussians.len() - kept.len();
+        let x0: Vec<DVec3> = keep.iter().map(|&i| x[i]).collect();
+        let splats: Vec<Splat> = keep
+            .iter()
+            .filter_map(|&i| {
+                Splat::from_3dgs(
+                    x[i],
+                    gaussians.log_scale[i].map(f64::from),
+                    gaussians.rotation[i].map(f64::from),
+                    f64::from(gaussians.opacity_logit[i]),
+                )
+            })
+            .collect();
+        let text = sim_yaml(&s.material, [0.0; 3], s.scene, s.frame_dt, dx, Some(true));
+        let spec = SimSpec::parse(&s.label, &text)?;
+        let body = Body::new(&spec, &s.label, x0, &splats, s.frames)?;
+        Ok(Self {
+            gaussians: kept,
+            floaters,
+            spec,
+            body,
+        })
+    }
+}
+
+/// The Gaussians of the object's main body: every Gaussian in a cluster of 26-connected grid
+/// cells of edge `dx` that holds the most opacity, or at least 1 % of it.
+fn main_body(g: &Gaussians, dx: f64) -> Vec<usize> {
+    let cell = |p: [f32; 3]| {
+        (DVec3::new(p[0].into(), p[1].into(), p[2].into()) / dx)
+            .floor()
+            .as_ivec3()
+    };
+    let mut cells: BTreeMap<(i32, i32, i32), f64> = BTreeMap::new();
+    for (p, l) in g.position.iter().zip(&g.opacity_logit) {
+        let c = cell(*p);
+        *cells.entry((c.x, c.y, c.z)).or_default() += 1.0 / (1.0 + (-f64::from(*l)).exp());
+    }
+    // Connected components by flood fill, in key order (deterministic).
+    let mut label: BTreeMap<(i32, i32, i32), usize> = BTreeMap::new();
+    let mut weight: Vec<f64> = Vec::new();
+    for &start in cells.keys() {
+        if label.contains_key(&start) {
+            continue;
+        }
+        let id = weight.len();
+        weight.push(0.0);
+        let mut stack = vec![start];
+        label.insert(start, id);
+        while let Some(c) = stack.pop() {
+            weight[id] += cells[&c];
+            for d in 0..27 {
+                let o = IVec3::new(d / 9 - 1, (d / 3) % 3 - 1, d % 3 - 1);
+                let n = (c.0 + o.x, c.1 + o.y, c.2 + o.z);
+                if cells.contains_key(&n) && !label.contains_key(&n) {
+                    label.insert(n, id);
+                    stack.push(n);
+                }
+            }
+        }
+    }
+    let top = weight.iter().copied().fold(0.0, f64::max);
+    (0..g.len())
+        .filter(|&i| {
+            let c = cell(g.position[i]);
+            weight[label[&(c.x, c.y, c.z)]] >= 0.01 * top
+        })
+        .collect()
+}
+
+/// The Gaussians `keep` of `g`, in that order.
+fn select(g: &Gaussians, keep: &[usize]) -> Gaussians {
+    let k = 3 * sh_coeffs(g.sh_degree);
+    Gaussians {
+        sh_degree: g.sh_degree,
+        id: keep.iter().map(|&i| g.id[i]).collect(),
+        position: keep.iter().map(|&i| g.position[i]).collect(),
+        log_scale: keep.iter().map(|&i| g.log_scale[i]).collect(),
+        rotation: keep.iter().map(|&i| g.rotation[i]).collect(),
+        opacity_logit: keep.iter().map(|&i| g.opacity_logit[i]).collect(),
+        sh: keep
+            .iter()
+            .flat_map(|&i| g.sh[i * k..(i + 1) * k].iter().copied())
+            .collect(),
+        simulated: vec![true; keep.len()],
+    }
+}
+
+/// A simulation file (`pipe simulate --material`) for the object of `scene` with `material`,
+/// initial velocity `v0` (m/s), `frame_dt` (s), cell `grid_dx` (m) and, when given,
+/// `fill_interior`.
+pub fn sim_yaml(
+    material: &MaterialSpec,
+    v0: [f64; 3],
+    scene: &SceneSpec,
+    frame_dt: f64,
+    grid_dx: f64,
+    fill_interior: Option<bool>,
+) -> String {
+    let num = |v: f64| fmt_num(v);
+    let vec3 = |v: [f64; 3]| format!("[{}, {}, {}]", num(v[0]), num(v[1]), num(v[2]));
+    let mut t = String::new();
+    let _ = writeln!(t, "material:");
+    let _ = writeln!(t, "  family: {}", family_name(material.family));
+    for (key, value) in [
+        ("youngs_modulus", material.youngs_modulus),
+        ("poisson_ratio", material.poisson_ratio),
+        ("yield_stress", material.yield_stress),
+        ("viscosity", material.viscosity),
+        ("bulk_modulus", material.bulk_modulus),
+        ("friction_angle_deg", material.friction_angle_deg),
+    ] {
+        if let Some(v) = value {
+            let _ = writeln!(t, "  {key}: {}", num(v));
+        }
+    }
+    let _ = writeln!(t, "  density: {}", num(material.density));
+    let _ = writeln!(t, "initial_velocity: {}", vec3(v0));
+    let _ = writeln!(t, "gravity: {}", vec3(scene.gravity));
+    let _ = writeln!(t, "frame_dt: {}", num(frame_dt));
+    let _ = writeln!(t, "grid_dx: {}", num(grid_dx));
+    if let Some(f) = fill_interior {
+        let _ = writeln!(t, "fill_interior: {f}");
+    }
+    if scene.boundaries.is_empty() {
+        let _ = writeln!(t, "boundaries: []");
+    } else {
+        let _ = writeln!(t, "boundaries:");
+    }
+    let cond = |c: BoundaryCondition| match c {
+        BoundaryCondition::Sticky => "sticky",
+        BoundaryCondition::Slip => "slip",
+        BoundaryCondition::Separate => "separate",
+    };
+    for b in &scene.boundaries {
+        let _ = match b {
+            BoundaryItem::Ground { y, condition } => writeln!(
+                t,
+                "  - {{kind: ground, y: {}, condition: {}}}",
+                num(*y),
+                cond(*condition)
+            ),
+            BoundaryItem::HalfSpace {
+                point,
+                normal,
+                condition,
+            } => writeln!(
+                t,
+                "  - {{kind: half_space, point: {}, normal: {}, condition: {}}}",
+                vec3(*point),
+                vec3(*normal),
+                cond(*condition)
+            ),
+            BoundaryItem::Box {
+                min,
+                max,
+                condition,
+            } => writeln!(
+                t,
+                "  - {{kind: box, min: {}, max: {}, condition: {}}}",
+                vec3(*min),
+                vec3(*max),
+                cond(*condition)
+            ),
+        };
+    }
+    t
+}
+
+/// The label a stage's object gets in messages: `FILE (stage S)`.
+pub fn label(pipeline_file: &Path, stage: &str) -> PathBuf {
+    PathBuf::from(format!("{} (stage {stage})", pipeline_file.display()))
+}

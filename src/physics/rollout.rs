@@ -1,0 +1,334 @@
+//! A simulated sequence of frames and its gradient (paper §3.2): the object moves from frame 0
+//! under a material and an initial velocity field; a loss at the end of each frame is
+//! back-propagated through the MPM adjoint to the material's parameters and, when asked, to
+//! the initial velocity.
+//!
+//! Each frame takes the substeps its stability limit needs at its start (`pipe simulate`'s rule,
+//! [`crate::simulate::frame_step`], CFL number 0.3), so the steps follow the material as it is
+//! learned. With [`Truncate::Frame`] a frame's gradient stops at the previous frame's state (as
+//! the seed method and PhysDreamer do): each frame is taped and reversed as it is simulated,
+//! in memory of one frame. With [`Truncate::None`] every frame's tape is kept and the state
+//! gradient is carried back through all of them, to frame 0.
+
+use std::collections::BTreeMap;
+
+use glam::DVec3;
+use pipe_mpm::{
+    BackwardOptions, Constitutive, DruckerPrager, FamilyParams, Material, ModelVisitor, MpmError,
+    Precision, Simulator, State, StateGrad,
+};
+use serde::{Deserialize, Serialize};
+
+use super::object::Object;
+use super::params::{MaterialValues, Param};
+use crate::pipeline::spec::MaterialFamily;
+use crate::simulate::{SimulateError, frame_step};
+
+/// How far back a frame's loss is differentiated.
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum Truncate {
+    /// To the previous frame's state (the state itself is held fixed).
+    #[default]
+    Frame,
+    /// Through the whole rollout, to frame 0.
+    None,
+}
+
+/// Why a rollout stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum RolloutError {
+    /// The simulator refused or diverged (NaN/Inf names the substep, quantity and particle).
+    #[error("frame {frame}: {source}")]
+    Simulation {
+        /// Frame being simulated or reversed (1-based).
+        frame: u16,
+        /// The simulator's error.
+        source: MpmError,
+    },
+    /// The substeps a frame needs cannot be taken.
+    #[error("frame {frame}: {source}")]
+    Steps {
+        /// Frame about to be simulated.
+        frame: u16,
+        /// Why.
+        source: Box<SimulateError>,
+    },
+    /// The frame loss failed (rendering, a non-finite value).
+    #[error("frame {frame}: {message}")]
+    Loss {
+        /// Frame.
+        frame: u16,
+        /// What went wrong.
+        message: String,
+    },
+    /// The user asked to stop.
+    #[error("interrupted")]
+    Interrupted,
+}
+
+/// The loss at the end of each frame.
+pub trait FrameLoss {
+    /// The loss of `state` at the end of frame `frame` (1-based); with `grad`, adds
+    /// `∂L/∂state` into it (every particle; zero for particles the loss does not see).
+    fn frame(
+        &mut self,
+        frame: u16,
+        state: &State,
+        grad: Option<&mut StateGrad>,
+    ) -> Result<f64, RolloutError>;
+}
+
+/// What a rollout is asked for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Wants {
+    /// The losses only (a plain forward run).
+    Loss,
+    /// The losses and the material's gradient.
+    Material(Truncate),
+    /// The losses, the material's gradient and `∂L/∂v0` per particle (through every frame).
+    Velocity,
+}
+
+/// What came out.
+#[derive(Debug, Clone)]
+pub struct Outcome {
+    /// Loss of each frame `1..=frames`.
+    pub frame_loss: Vec<f64>,
+    /// Substeps of each frame.
+    pub substeps: Vec<usize>,
+    /// `∂L/∂(material parameter)` of the family's parameters (values, not encodings).
+    pub material: Option<BTreeMap<Param, f64>>,
+    /// `∂L/∂v0` per particle.
+    pub v0: Option<Vec<DVec3>>,
+    /// The state at the end of the last frame.
+    pub last: State,
+}
+
+impl Outcome {
+    /// The summed loss.
+    pub fn loss(&self) -> f64 {
+        self.frame_loss.iter().sum()
+    }
+}
+
+/// One rollout of `object` under `material` from initial velocities `v0` (m/s, per particle)
+/// through frames `1..=frames`, in `precision`.
+#[derive(Debug, Clone, Copy)]
+pub struct Rollout<'a> {
+    /// The object.
+    pub object: &'a Object,
+    /// Its material.
+    pub material: &'a MaterialValues,
+    /// Initial velocity per particle (m/s).
+    pub v0: &'a [DVec3],
+    /// Frames simulated after frame 0.
+    pub frames: u16,
+    /// Precision of the simulation and its adjoint.
+    pub precision: Precision,
+    /// Stop when this turns true (checked every frame).
+    pub interrupt: Option<&'a std::sync::atomic::AtomicBool>,
+}
+
+/// The object's per-particle material for `values`: the body's masses and volumes with the
+/// values' moduli.
+pub fn material_of(object: &Object, values: &MaterialValues) -> Result<Material, MpmError> {
+    let n = object.particles();
+    let mut m = values.spec().material(n, 1.0)?;
+    // The family's scalars are the model's own (`Simulator::set_model`).
+    m.volume.clone_from(&object.body.material.volume);
+    m.mass.clone_from(&object.body.material.mass);
+    Ok(m)
+}
+
+/// Substeps between tape checkpoints: a frame's reversal then recomputes each substep about
+/// three times with the default snapshots (memory: one state per checkpoint).
+const CHECKPOINT_EVERY: usize = 16;
+
+/// Called after each frame's backward pass of a [`Rollout::run_online`] with the frame and
+/// `∂L/∂value` of the family's parameters: the material the next frames take, if it changes.
+pub type OnFrame<'c> =
+    dyn FnMut(u16, &BTreeMap<Param, f64>) -> Result<Option<MaterialValues>, RolloutError> + 'c;
+
+impl Rollout<'_> {
+    /// Runs the rollout, calling `loss` at the end of every frame.
+    pub fn run(&self, loss: &mut dyn FrameLoss, wants: Wants) -> Result<Outcome, RolloutError> {
+        self.material.spec().mpm_family().visit(Visit {
+            r: self,
+            loss,
+            wants,
+            on_frame: None,
+        })
+    }
+
+    /// A rollout truncated at every frame whose material may change after each frame:
+    /// `on_frame` gets each frame's gradient as soon as the frame is reversed, and the material
+    /// it returns simulates the frames after it (the online descent of truncated
+    /// back-propagation through time). The outcome's material gradient is the sum over the
+    /// frames, each at the material it was simulated with.
+    pub fn run_online(
+        &self,
+        loss: &mut dyn FrameLoss,
+        on_frame: &mut OnFrame<'_>,
+    ) -> Result<Outcome, RolloutError> {
+        self.material.spec().mpm_family().visit(Visit {
+            r: self,
+            loss,
+            wants: Wants::Material(Truncate::Frame),
+            on_frame: Some(on_frame),
+        })
+    }
+}
+
+struct Visit<'a, 'b> {
+    r: &'a Rollout<'a>,
+    loss: &'b mut dyn FrameLoss,
+    wants: Wants,
+    on_frame: Option<&'b mut OnFrame<'b>>,
+}
+
+/// The family scalars of `values` (yield stress, plastic viscosity, friction), as a model
+/// takes them.
+fn family_params(values: &MaterialValues) -> FamilyParams {
+    FamilyParams {
+        yield_stress: values.get(Param::YieldStress).unwrap_or(0.0),
+        eta: values.get(Param::Viscosity).unwrap_or(0.0),
+        friction_alpha: values
+            .get(Param::FrictionAngle)
+            .map_or(0.0, |phi| DruckerPrager::from_friction_angle_deg(phi).alpha),
+    }
+}
+
+impl ModelVisitor for Visit<'_, '_> {
+    type Output = Result<Outcome, RolloutError>;
+
+    fn visit<M: Constitutive + Clone + 'static>(self, model: M) -> Self::Output {
+        let Visit {
+            r,
+            loss,
+            wants,
+            mut on_frame,
+        } = self;
+        let object = r.object;
+        let sim_err = |frame: u16| move |source| RolloutError::Simulation { frame, source };
+        let mut sim = Simulator::new(model.clone(), object.body.config(&object.spec, r.precision))
+            .map_err(sim_err(0))?;
+        let mut values = r.material.clone();
+        let mut mat = material_of(object, &values).map_err(sim_err(0))?;
+        let mut per_value: BTreeMap<Param, f64> = BTreeMap::new();
+        let mut state = object.body.state.clone();
+        for (v, v0) in state.v.iter_mut().zip(r.v0) {
+            *v = *v0;
+        }
+        let n_all = state.len();
+        let frame_dt = object.spec.frame_dt;
+        let mut frame_loss = Vec::new();
+        let mut substeps = Vec::new();
+        // Truncate::None and Wants::Velocity: every frame's tape, substeps and seed.
+        let mut kept: Vec<(pipe_mpm::Tape, usize, StateGrad)> = Vec::new();
+        let grads = !matches!(wants, Wants::Loss);
+        let keep_all = matches!(wants, Wants::Velocity | Wants::Material(Truncate::None));
+        for frame in 1..=r.frames {
+            if r.interrupt
+                .is_some_and(|i| i.load(std::sync::atomic::Ordering::SeqCst))
+            {
+                return Err(RolloutError::Interrupted);
+            }
+            let step = frame_step(
+                &object.spec,
+                &object.body,
+                &mat,
+                &sim,
+                &state,
+                u32::from(frame),
+            )
+            .map_err(|e| RolloutError::Steps {
+                frame,
+                source: Box::new(e),
+            })?;
+            let n = step.substeps;
+            let dt = frame_dt / n as f64;
+            sim.set_dt(dt).map_err(sim_err(frame))?;
+            let t0 = f64::from(frame - 1) * frame_dt;
+            substeps.push(n);
+            if !grads {
+                sim.run(&mut state, &mat, t0, n).map_err(sim_err(frame))?;
+                frame_loss.push(loss.frame(frame, &state, None)?);
+                continue;
+            }
+            let tape = sim
+                .forward_tape(&mut state, &mat, t0, n, CHECKPOINT_EVERY)
+                .map_err(sim_err(frame))?;
+            let mut seed = StateGrad::zeros(n_all);
+            frame_loss.push(loss.frame(frame, &state, Some(&mut seed))?);
+            if keep_all {
+                kept.push((tape, n, seed));
+                continue;
+            }
+            let g = sim
+                .backward(
+                    &tape,
+                    &mat,
+                    |k, _| (k == n).then(|| seed.clone()),
+                    BackwardOptions::default(),
+                )
+                .map_err(sim_err(frame))?;
+            let grad = values.gradient(&g.material);
+            for (p, v) in &grad {
+                *per_value.entry(*p).or_default() += v;
+            }
+            if let Some(cb) = on_frame.as_deref_mut()
+                && let Some(next) = cb(frame, &grad)?
+            {
+                mat = material_of(object, &next).map_err(sim_err(frame))?;
+                sim.set_model(model.with_params(&family_params(&next)))
+                    .map_err(sim_err(frame))?;
+                values = next;
+            }
+        }
+        let mut v0_grad = None;
+        if keep_all {
+            // Back through every frame, carrying ∂L/∂state from each frame's end to its start.
+            let mut carry: Option<StateGrad> = None;
+            for (i, (tape, n, mut seed)) in kept.into_iter().enumerate().rev() {
+                let frame = i as u16 + 1;
+                if let Some(c) = carry.take() {
+                    seed.add_assign(&c);
+                }
+                sim.set_dt(frame_dt / n as f64).map_err(sim_err(frame))?;
+                let g = sim
+                    .backward(
+                        &tape,
+                        &mat,
+                        |k, _| (k == n).then(|| seed.clone()),
+                        BackwardOptions::default(),
+                    )
+                    .map_err(sim_err(frame))?;
+                for (p, v) in values.gradient(&g.material) {
+                    *per_value.entry(p).or_default() += v;
+                }
+                carry = Some(g.state.clone());
+            }
+            v0_grad = carry.map(|c| c.v);
+        }
+        let material = grads.then_some(per_value);
+        Ok(Outcome {
+            frame_loss,
+            substeps,
+            material,
+            v0: if matches!(wants, Wants::Velocity) {
+                v0_grad
+            } else {
+                None
+            },
+            last: state,
+        })
+    }
+}
+
+/// Whether a family's particles render as a fluid (their `F` holds only the volume ratio).
+pub fn is_fluid(family: MaterialFamily) -> bool {
+    matches!(family, MaterialFamily::Newtonian)
+}

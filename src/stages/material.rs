@@ -1,0 +1,603 @@
+//! Stage `material`: the object's material from every frame (paper §3.2), by gradient descent
+//! through the renderer and the MPM simulation, with the canonical Gaussians and the initial
+//! velocity (`velocity`) held.
+//!
+//! Only the parameters of the scene's declared family are learned (`learn:` narrows or widens
+//! the set among them), each in the optimiser's coordinates of [`crate::physics::params`] (log10
+//! of moduli, stresses and viscosities; ν and the friction angle through bounded maps). The
+//! model is one global value per parameter (`model: global`; a per-particle field is another
+//! model, to come). Each epoch simulates the sequence from frame 0; with `truncate: frame` (the
+//! default, as the seed method) every frame's gradient stops at the previous frame's state and
+//! Adam steps after every frame (online truncated back-propagation through time); with
+//! `truncate: none` the gradient runs through the whole rollout and Adam steps once an epoch.
+//!
+//! Writes `material.json`, `scene.sim.yaml` (a simulation file `pipe simulate` takes as it is),
+//! `particles.arrow` (frame 0: position, mass, volume, E, ν, v0 per particle) and
+//! `metrics.arrow` (the loss and every learned value per epoch); checkpoints every epoch.
+
+use std::collections::BTreeMap;
+
+use glam::DVec3;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+
+use crate::physics::adam::{Adam, AdamConfig, decayed};
+use crate::physics::fit::{FitError, Inputs, PrecisionParam, RigidVelocity};
+use crate::physics::object::sim_yaml;
+use crate::physics::params::{MaterialValues, Param};
+use crate::physics::rollout::{Rollout, RolloutError, Truncate, Wants, is_fluid};
+use crate::physics::views::{LossWeights, ViewsLoss};
+use crate::pipeline::spec::{Preset, SceneSpec};
+use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
+use crate::stages::velocity::{VelocityResult, check_family_guess, check_guess};
+
+/// How the material varies over the object.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum MaterialModel {
+    /// One value per parameter: a homogeneous object needs no more.
+    #[default]
+    Global,
+}
+
+/// Parameters of `material`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct MaterialParams {
+    /// How the material varies over the object.
+    #[serde(default)]
+    pub model: MaterialModel,
+    /// The parameters learned, among the family's (default: the family's usual set: E and ν
+    /// of a solid, also the yield stress of plasticine, ... the viscosity μ and bulk modulus κ
+    /// of a Newtonian fluid, the friction angle of sand).
+    #[serde(default)]
+    pub learn: Option<Vec<Param>>,
+    /// The start of each parameter of the family (SI units, degrees; default the family's
+    /// guess: E = 1e5 Pa, ν = 0.3, ...); parameters not learned keep it.
+    #[serde(default)]
+    pub guess: BTreeMap<Param, f64>,
+    /// Passes over the frames.
+    #[serde(default = "epochs")]
+    pub epochs: u32,
+    /// Adam's step at the start in the optimiser's coordinates (0.1 = ×1.26 on a modulus); it
+    /// decays to `lr_final`.
+    #[serde(default = "lr")]
+    pub lr: f64,
+    /// Adam's step at the end.
+    #[serde(default = "lr_final")]
+    pub lr_final: f64,
+    /// How far back a frame's loss is differentiated.
+    #[serde(default)]
+    pub truncate: Truncate,
+    /// Last frame fitted (default: every frame).
+    #[serde(default)]
+    pub frames: Option<u16>,
+    /// Grid cells across the object's largest extent.
+    #[serde(default = "cells")]
+    pub cells: f64,
+    /// Precision of the simulation and its adjoint.
+    #[serde(default)]
+    pub precision: PrecisionParam,
+    /// Weight of L1 in `λ·L1 + (1 − λ)·D-SSIM`.
+    #[serde(default = "lambda")]
+    pub lambda: f64,
+    /// Weight of the silhouette term `mean|α − mask|`.
+    #[serde(default = "alpha_weight")]
+    pub alpha_weight: f64,
+    /// Gradients longer than this (optimiser coordinates) are scaled down to it.
+    #[serde(default = "grad_clip")]
+    pub grad_clip: f64,
+}
+
+fn epochs() -> u32 {
+    10
+}
+fn lr() -> f64 {
+    0.1
+}
+fn lr_final() -> f64 {
+    0.005
+}
+fn cells() -> f64 {
+    24.0
+}
+fn lambda() -> f64 {
+    0.1
+}
+fn alpha_weight() -> f64 {
+    0.1
+}
+fn grad_clip() -> f64 {
+    1.0
+}
+
+/// What an interrupted run resumes from.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct Checkpoint {
+    /// Epochs done.
+    epoch: u32,
+    /// The learned parameters, in the optimiser's coordinates (order of `learned`).
+    u: Vec<f64>,
+    adam: Adam,
+}
+
+/// `material.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MaterialResult {
+    /// The family.
+    pub family: String,
+    /// `global`.
+    pub model: MaterialModel,
+    /// Young's modulus E (Pa), Poisson's ratio ν, yield stress (Pa), viscosity (Pa s: the
+    /// plastic flow's η, or a fluid's μ), bulk modulus κ (Pa), friction angle (degrees);
+    /// `null` where the family has none.
+    pub youngs_modulus: Option<f64>,
+    pub poisson_ratio: Option<f64>,
+    pub yield_stress: Option<f64>,
+    pub viscosity: Option<f64>,
+    pub bulk_modulus: Option<f64>,
+    pub friction_angle_deg: Option<f64>,
+    /// The parameters learned (the others stayed at their guess).
+    pub learned: Vec<Param>,
+    /// Where they started.
+    pub guess: BTreeMap<Param, f64>,
+    /// The initial velocity (m/s) from `velocity`: the mean, and the rigid motion.
+    pub initial_velocity: [f64; 3],
+    pub angular_velocity: [f64; 3],
+    /// Density (kg/m³).
+    pub density: f64,
+    /// Loss over the frames (sum of the frames' mean view losses) at the guess and at the
+    /// result, from a rollout at each.
+    pub loss_guess: f64,
+    pub loss_final: f64,
+    /// Mean PSNR (dB) of the training views over the frames at the result.
+    pub train_psnr_final: f64,
+    /// Frames fitted (`1..=frames`), epochs, simulated particles (Gaussians and fillers),
+    /// Gaussians among them, floaters dropped, grid cell (m), substeps of each frame at the
+    /// result.
+    pub frames: u16,
+    pub epochs: u32,
+    pub particles: usize,
+    pub gaussians: usize,
+    pub floaters: usize,
+    pub grid_dx: f64,
+    pub substeps: Vec<usize>,
+}
+
+/// The `material` stage.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct MaterialStage;
+
+impl TypedStage for MaterialStage {
+    type Params = MaterialParams;
+    const KIND: &'static str = "material";
+    const VERSION: u32 = 1;
+    const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
+    const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
+
+    fn output_schemas(&self) -> Vec<(&'static str, u32)> {
+        vec![("particles_material", 1)]
+    }
+
+    fn preset_params(&self, preset: Preset) -> Value {
+        match preset {
+            Preset::Draft => json!({"epochs": 4, "cells": 16}),
+            Preset::Standard => json!({"epochs": 10, "cells": 24}),
+            Preset::Paper => json!({"epochs": 200, "cells": 48, "precision": "f64"}),
+        }
+    }
+
+    fn scene_key(&self, scene: &SceneSpec) -> Value {
+        json!({
+            "material": scene.material,
+            "density": scene.density,
+            "gravity": scene.gravity,
+            "boundaries": scene.boundaries,
+        })
+    }
+
+    fn validate(&self, p: &MaterialParams) -> Result<(), ParamError> {
+        let bad = |path: &str, message: String| {
+            Err(ParamError {
+                path: path.into(),
+                message,
+            })
+        };
+        if p.epochs == 0 {
+            return bad("epochs", "must be at least 1".into());
+        }
+        for (name, v) in [("lr", p.lr), ("lr_final", p.lr_final)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(name, format!("must be finite and >= 0, found {v}"));
+            }
+        }
+        if !(p.cells.is_finite() && p.cells >= 4.0 && p.cells <= 512.0) {
+            return bad("cells", format!("must be in [4, 512], found {}", p.cells));
+        }
+        if !(0.0..=1.0).contains(&p.lambda) {
+            return bad("lambda", format!("must be in [0, 1], found {}", p.lambda));
+        }
+        if !(p.alpha_weight.is_finite() && p.alpha_weight >= 0.0) {
+            return bad(
+                "alpha_weight",
+                format!("must be >= 0, found {}", p.alpha_weight),
+            );
+        }
+        if p.grad_clip.is_nan() || p.grad_clip <= 0.0 {
+            return bad("grad_clip", format!("must be > 0, found {}", p.grad_clip));
+        }
+        if p.frames == Some(0) {
+            return bad("frames", "must be at least 1".into());
+        }
+        if let Some(l) = &p.learn
+            && l.is_empty()
+        {
+            return bad(
+                "learn",
+                "names no parameter; leave it out for the family's set".into(),
+            );
+        }
+        check_guess(&p.guess)
+    }
+
+    fn run(&self, p: &MaterialParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
+        let inputs = Inputs::load(ctx)?;
+        let velocity: VelocityResult = {
+            let path = ctx.upstream("velocity")?.dir.join("velocity.json");
+            crate::io::read_json(&path).map_err(StageError::failed)?
+        };
+        let family = inputs.family;
+        let last = p.frames.unwrap_or(u16::MAX).min(inputs.last_frame());
+        if last == 0 {
+            return Err(StageError::failed(FitError::Invalid(
+                "the capture has no frame after frame 0".into(),
+            )));
+        }
+        let guess = MaterialValues::guess(family, ctx.scene.density, &p.guess);
+        check_family_guess(&guess, &p.guess, ctx.name)?;
+        let learned: Vec<Param> = match &p.learn {
+            None => Param::learned_by_default(family).to_vec(),
+            Some(l) => {
+                for q in l {
+                    if guess.get(*q).is_none() {
+                        return Err(StageError::failed(FitError::Invalid(format!(
+                            "stages.{}.learn: the scene's family `{}` has no parameter `{}` (it has {})",
+                            ctx.name,
+                            crate::simulate::spec::family_name(family),
+                            q.name(),
+                            Param::of_family(family)
+                                .iter()
+                                .map(|p| p.name())
+                                .collect::<Vec<_>>()
+                                .join(", ")
+                        ))));
+                    }
+                    if !q.encodable(guess.get(*q).unwrap_or(0.0)) {
+                        return Err(StageError::failed(FitError::Invalid(format!(
+                            "stages.{}.learn names `{}`, whose guess {} cannot be learned (set `guess.{}` > 0)",
+                            ctx.name,
+                            q.name(),
+                            guess.get(*q).unwrap_or(0.0),
+                            q.name()
+                        ))));
+                    }
+                }
+                let mut l = l.clone();
+                l.sort();
+                l.dedup();
+                l
+            }
+        };
+        let object = inputs.object(ctx, &guess, p.cells)?;
+        let rigid = RigidVelocity {
+            linear: velocity.linear_velocity,
+            angular: velocity.angular_velocity,
+            centre: object.centre_of_mass().to_array(),
+        };
+        let v0 = rigid.field(&object);
+        let targets = inputs.train_targets(last)?;
+        let weights = LossWeights {
+            lambda: p.lambda,
+            alpha_weight: p.alpha_weight,
+        };
+        let mut loss = ViewsLoss::new(
+            &object,
+            is_fluid(family),
+            &targets,
+            weights,
+            inputs.background,
+        );
+        ctx.progress.log(&format!(
+            "material: {} particles ({} Gaussians, {} fillers; {} floaters dropped), {:.2} kg, dx {:.4} m, frames 1..={last}, {} views; learning {}",
+            object.particles(),
+            object.rendered(),
+            object.particles() - object.rendered(),
+            object.floaters,
+            object.mass(),
+            object.body.setup.dx,
+            targets.len(),
+            learned.iter().map(|p| p.name()).collect::<Vec<_>>().join(", ")
+        ));
+
+        let values_of = |u: &[f64]| -> MaterialValues {
+            let mut m = guess.clone();
+            for (q, u) in learned.iter().zip(u) {
+                m.values.insert(*q, q.decode(*u));
+            }
+            m
+        };
+        let mut u: Vec<f64> = learned
+            .iter()
+            .map(|q| q.encode(guess.get(*q).unwrap_or(1.0)))
+            .collect();
+        let mut adam = Adam::new(learned.len());
+        let mut first_epoch = 0;
+        let interrupt = ctx.interrupt_flag();
+        if let Some(ck) = ctx.resume::<Checkpoint>()
+            && ck.u.len() == learned.len()
+        {
+            (first_epoch, u, adam) = (ck.epoch, ck.u, ck.adam);
+        }
+        let cfg = AdamConfig {
+            clip: p.grad_clip,
+            ..Default::default()
+        };
+        let precision = p.precision.mpm();
+        let fail = |epoch: u32, e: RolloutError| -> StageError {
+            match e {
+                RolloutError::Interrupted => StageError::Interrupted,
+                e => StageError::failed(FitError::Training {
+                    epoch,
+                    message: format!(
+                        "{e}; try a smaller `lr`, `precision: f64`, more `cells` or a guess closer to the material"
+                    ),
+                }),
+            }
+        };
+        // Adam steps over the whole descent (per frame with truncate: frame).
+        let steps_per_epoch = match p.truncate {
+            Truncate::Frame => u32::from(last),
+            Truncate::None => 1,
+        };
+        let total_steps = (p.epochs * steps_per_epoch).max(2);
+        ctx.progress.start("epoch", u64::from(p.epochs));
+        ctx.progress.inc(u64::from(first_epoch));
+        for epoch in first_epoch..p.epochs {
+            ctx.check_interrupted()?;
+            let values = values_of(&u);
+            let rollout = Rollout {
+                object: &object,
+                material: &values,
+                v0: &v0,
+                frames: last,
+                precision,
+                interrupt: Some(interrupt),
+            };
+            let mut bad_grad: Option<String> = None;
+            let step = |u: &mut Vec<f64>,
+                        adam: &mut Adam,
+                        grad: &BTreeMap<Param, f64>|
+             -> Result<(), String> {
+                let g: Vec<f64> = learned
+                    .iter()
+                    .zip(u.iter())
+                    .map(|(q, u)| grad.get(q).copied().unwrap_or(0.0) * q.dvalue_du(*u))
+                    .collect();
+                if let Some((q, v)) = learned.iter().zip(&g).find(|(_, v)| !v.is_finite()) {
+                    return Err(format!("non-finite gradient of `{}` ({v})", q.name()));
+                }
+                let progress = f64::from(adam.t) / f64::from(total_steps - 1);
+                let lr = decayed(p.lr, p.lr_final, progress);
+                adam.step(&cfg, u, &g, &vec![lr; g.len()]);
+                Ok(())
+            };
+            let out = match p.truncate {
+                Truncate::Frame => {
+                    let mut on_frame = |frame: u16, grad: &BTreeMap<Param, f64>| {
+                        step(&mut u, &mut adam, grad).map_err(|message| {
+                            bad_grad = Some(message.clone());
+                            RolloutError::Loss { frame, message }
+                        })?;
+                        Ok(Some(values_of(&u)))
+                    };
+                    rollout.run_online(&mut loss, &mut on_frame)
+                }
+                Truncate::None => rollout
+                    .run(&mut loss, Wants::Material(Truncate::None))
+                    .and_then(|o| {
+                        let grad = o.material.clone().unwrap_or_default();
+                        step(&mut u, &mut adam, &grad).map_err(|message| RolloutError::Loss {
+                            frame: last,
+                            message,
+                        })?;
+                        Ok(o)
+                    }),
+            }
+            .map_err(|e| fail(epoch, e))?;
+            let l = out.loss();
+            let psnr = loss.psnr.values().sum::<f64>() / loss.psnr.len().max(1) as f64;
+            // The values at the end of the epoch.
+            let now = values_of(&u);
+            let mut metric = |name: &str, value: f64| {
+                ctx.metric(MetricRow {
+                    epoch: Some(epoch),
+                    view: None,
+                    frame: None,
+                    metric: name.into(),
+                    value,
+                })
+            };
+            metric("loss", l);
+            metric("train_psnr", psnr);
+            metric("substeps", out.substeps.iter().sum::<usize>() as f64);
+            for (q, v) in &now.values {
+                metric(q.name(), *v);
+            }
+            ctx.progress.message(&format!(
+                "loss {l:.5}  {}",
+                learned
+                    .iter()
+                    .map(|q| format!("{} {:.4e}", q.name(), now.get(*q).unwrap_or(0.0)))
+                    .collect::<Vec<_>>()
+                    .join("  ")
+            ));
+            ctx.progress.inc(1);
+            ctx.checkpoint(
+                &format!("epoch {}", epoch + 1),
+                &Checkpoint {
+                    epoch: epoch + 1,
+                    u: u.clone(),
+                    adam: adam.clone(),
+                },
+            )?;
+        }
+
+        // The losses at the guess and at the result, from clean rollouts.
+        let result = values_of(&u);
+        let eval = |values: &MaterialValues, loss: &mut ViewsLoss<'_>| {
+            Rollout {
+                object: &object,
+                material: values,
+                v0: &v0,
+                frames: last,
+                precision,
+                interrupt: Some(interrupt),
+            }
+            .run(loss, Wants::Loss)
+            .map_err(|e| fail(p.epochs, e))
+        };
+        let loss_guess = eval(&guess, &mut loss)?.loss();
+        let final_out = eval(&result, &mut loss)?;
+        let psnr = loss.psnr.values().sum::<f64>() / loss.psnr.len().max(1) as f64;
+        for (metric, value) in [
+            ("loss_guess", loss_guess),
+            ("loss_final", final_out.loss()),
+            ("train_psnr_final", psnr),
+        ] {
+            ctx.metric(MetricRow {
+                epoch: None,
+                view: None,
+                frame: None,
+                metric: metric.into(),
+                value,
+            });
+        }
+        let spec = result.spec();
+        let out = MaterialResult {
+            family: crate::simulate::spec::family_name(family).into(),
+            model: p.model,
+            youngs_modulus: spec.youngs_modulus,
+            poisson_ratio: spec.poisson_ratio,
+            yield_stress: spec.yield_stress,
+            viscosity: spec.viscosity,
+            bulk_modulus: spec.bulk_modulus,
+            friction_angle_deg: spec.friction_angle_deg,
+            learned: learned.clone(),
+            guess: guess.values.clone(),
+            initial_velocity: velocity.initial_velocity,
+            angular_velocity: velocity.angular_velocity,
+            density: ctx.scene.density,
+            loss_guess,
+            loss_final: final_out.loss(),
+            train_psnr_final: psnr,
+            frames: last,
+            epochs: p.epochs,
+            particles: object.particles(),
+            gaussians: object.rendered(),
+            floaters: object.floaters,
+            grid_dx: object.body.setup.dx,
+            substeps: final_out.substeps.clone(),
+        };
+        crate::io::write_json(&ctx.out_dir.join("material.json"), &out)
+            .map_err(StageError::failed)?;
+        let sim = sim_yaml(
+            &spec,
+            velocity.initial_velocity,
+            ctx.scene,
+            inputs.frame_dt,
+            object.body.setup.dx,
+            None,
+        );
+        std::fs::write(
+            ctx.out_dir.join("scene.sim.yaml"),
+            format!(
+                "# Learned by stage `{}` of {} (family {}); simulate the fitted Gaussians with\n\
+                 #   pipe export FILE --stage warmup --format ply --out object.ply\n\
+                 #   pipe simulate object.ply --material scene.sim.yaml --frames {} --out sim --splats\n{sim}",
+                ctx.name,
+                ctx.scene.path.display(),
+                out.family,
+                u32::from(last) + 1
+            ),
+        )
+        .map_err(StageError::failed)?;
+        crate::physics::particles::write(
+            &ctx.out_dir.join("particles.arrow"),
+            &object,
+            &result,
+            &v0,
+        )
+        .map_err(StageError::failed)?;
+        ctx.progress.log(&report(&out, ctx.scene));
+        Ok(())
+    }
+}
+
+/// The learned values next to the scene's ground truth, when it has one.
+fn report(out: &MaterialResult, scene: &SceneSpec) -> String {
+    let gt = crate::physics::fit::ground_truth(scene);
+    let truth = |key: &str| gt.as_ref().and_then(|g| g[key].as_f64());
+    let mut parts = Vec::new();
+    for (name, value, key, unit) in [
+        ("E", out.youngs_modulus, "E", " Pa"),
+        ("nu", out.poisson_ratio, "nu", ""),
+        ("yield stress", out.yield_stress, "yield_stress", " Pa"),
+        (
+            "viscosity",
+            out.viscosity,
+            if out.family == "newtonian" {
+                "mu"
+            } else {
+                "plastic_viscosity_eta"
+            },
+            " Pa s",
+        ),
+        ("bulk modulus", out.bulk_modulus, "kappa", " Pa"),
+        (
+            "friction angle",
+            out.friction_angle_deg,
+            "friction_angle_deg",
+            " deg",
+        ),
+    ] {
+        if let Some(v) = value {
+            let t = truth(key)
+                .map(|t| format!(" (ground truth {t:.4e})"))
+                .unwrap_or_default();
+            parts.push(format!("{name} {v:.4e}{unit}{t}"));
+        }
+    }
+    let v = out.initial_velocity;
+    let v_truth = gt
+        .as_ref()
+        .and_then(|g| serde_json::from_value::<[f64; 3]>(g["v0"].clone()).ok())
+        .map(|t| format!(" (ground truth [{}, {}, {}])", t[0], t[1], t[2]))
+        .unwrap_or_default();
+    format!(
+        "learned {} material: {}; initial velocity [{:.4}, {:.4}, {:.4}] m/s{v_truth}; loss {:.5} at the guess -> {:.5}",
+        out.family,
+        parts.join(", "),
+        v[0],
+        v[1],
+        v[2],
+        out.loss_guess,
+        out.loss_final
+    )
+}
+
+/// `∂`-free helper: the velocity field's mean, for tests.
+#[allow(dead_code)]
+fn mean(v: &[DVec3]) -> DVec3 {
+    v.iter().sum::<DVec3>() / v.len().max(1) as f64
+}

@@ -1,0 +1,507 @@
+//! Stage `velocity`: the object's initial velocity from the first frames (paper §3.2), by
+//! gradient descent through the renderer and the MPM simulation, the material held at a
+//! guess of its family (in free flight it barely matters).
+//!
+//! The descent starts from the velocity of the masks' visual hulls over those frames
+//! ([`crate::physics::track`], `init: hull`), then Adam steps the translation (`model:
+//! translation`, 3 numbers) or the rigid motion (`model: rigid`, linear and angular velocity
+//! about the centre of mass, 6 numbers) on the image loss of the training views of frames
+//! `1..frames` (frame 0 is the canonical state), back-propagated through every frame to the
+//! initial velocity. Writes `velocity.json` and `metrics.arrow` (the loss and the learned values
+//! per epoch); checkpoints every epoch, so an interrupted run resumes.
+
+use std::collections::BTreeMap;
+
+use glam::DVec3;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+
+use crate::physics::adam::{Adam, AdamConfig, decayed};
+use crate::physics::fit::{FitError, Inputs, PrecisionParam, RigidVelocity};
+use crate::physics::params::{MaterialValues, Param};
+use crate::physics::rollout::{Rollout, RolloutError, Wants, is_fluid};
+use crate::physics::track;
+use crate::physics::views::{LossWeights, ViewsLoss};
+use crate::pipeline::spec::{Preset, SceneSpec};
+use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
+
+/// The velocity field learned.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum VelocityModel {
+    /// One velocity for every particle (3 numbers).
+    Translation,
+    /// Linear and angular velocity about the centre of mass (6 numbers): a thrown or dropped
+    /// object.
+    #[default]
+    Rigid,
+}
+
+/// Where the descent starts.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum VelocityInit {
+    /// The velocity of the masks' visual hulls over the frames (a least-squares fit of a
+    /// ballistic path).
+    #[default]
+    Hull,
+    /// At rest.
+    Zero,
+}
+
+/// Parameters of `velocity`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct VelocityParams {
+    /// Frames `0..frames` are used (the loss is taken at frames `1..frames`).
+    #[serde(default = "frames")]
+    pub frames: u16,
+    /// The velocity field.
+    #[serde(default)]
+    pub model: VelocityModel,
+    /// Where the descent starts.
+    #[serde(default)]
+    pub init: VelocityInit,
+    /// Adam steps (one rollout each).
+    #[serde(default = "epochs")]
+    pub epochs: u32,
+    /// Step of the linear velocity at the start (m/s); it decays to `lr_final`.
+    #[serde(default = "lr")]
+    pub lr: f64,
+    /// Step of the linear velocity at the end (m/s).
+    #[serde(default = "lr_final")]
+    pub lr_final: f64,
+    /// Step of the angular velocity at the start (rad/s), decaying in the same ratio.
+    #[serde(default = "lr_angular")]
+    pub lr_angular: f64,
+    /// The material held during the fit: values of the scene family's parameters
+    /// (`E`, `nu`, `yield_stress`, `viscosity`, `bulk_modulus`, `friction_angle`; SI units,
+    /// degrees), each defaulting to the family's guess (E = 1e5 Pa, ν = 0.3, ...).
+    #[serde(default)]
+    pub guess: BTreeMap<Param, f64>,
+    /// Grid cells across the object's largest extent.
+    #[serde(default = "cells")]
+    pub cells: f64,
+    /// Precision of the simulation and its adjoint.
+    #[serde(default)]
+    pub precision: PrecisionParam,
+    /// Weight of L1 in `λ·L1 + (1 − λ)·D-SSIM`.
+    #[serde(default = "lambda")]
+    pub lambda: f64,
+    /// Weight of the silhouette term `mean|α − mask|`.
+    #[serde(default = "alpha_weight")]
+    pub alpha_weight: f64,
+    /// Gradients longer than this are scaled down to it (`∞`: never).
+    #[serde(default = "grad_clip")]
+    pub grad_clip: f64,
+}
+
+fn frames() -> u16 {
+    4
+}
+fn epochs() -> u32 {
+    30
+}
+fn lr() -> f64 {
+    0.05
+}
+fn lr_final() -> f64 {
+    0.005
+}
+fn lr_angular() -> f64 {
+    0.5
+}
+fn cells() -> f64 {
+    24.0
+}
+fn lambda() -> f64 {
+    0.1
+}
+fn alpha_weight() -> f64 {
+    0.1
+}
+fn grad_clip() -> f64 {
+    1.0
+}
+
+/// What an interrupted run resumes from.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct Checkpoint {
+    /// Epochs done.
+    epoch: u32,
+    /// The learned values, in the optimiser's order.
+    x: Vec<f64>,
+    adam: Adam,
+    /// Where the descent started.
+    start: Vec<f64>,
+}
+
+/// The `velocity` stage.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Velocity;
+
+/// `velocity.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VelocityResult {
+    /// `translation` or `rigid`.
+    pub model: VelocityModel,
+    /// Linear velocity of the centre of mass (m/s).
+    pub linear_velocity: [f64; 3],
+    /// Angular velocity (rad/s; zero for a translation).
+    pub angular_velocity: [f64; 3],
+    /// The centre of mass (m) the rotation is about.
+    pub centre_of_mass: [f64; 3],
+    /// The particles' mass-weighted mean velocity (m/s): what a simulation file's
+    /// `initial_velocity` takes.
+    pub initial_velocity: [f64; 3],
+    /// Where the descent started (m/s).
+    pub start_velocity: [f64; 3],
+    /// How the start was found.
+    pub init: VelocityInit,
+    /// Frames used (`0..frames`).
+    pub frames: u16,
+    /// Loss at the start and at the learned velocity.
+    pub loss_start: f64,
+    pub loss_final: f64,
+    /// The material held during the fit.
+    pub material: MaterialValues,
+    /// Simulated particles (Gaussians and fillers), Gaussians among them, and Gaussians
+    /// dropped as floaters.
+    pub particles: usize,
+    pub gaussians: usize,
+    pub floaters: usize,
+}
+
+impl TypedStage for Velocity {
+    type Params = VelocityParams;
+    const KIND: &'static str = "velocity";
+    const VERSION: u32 = 1;
+    const DESCRIPTION: &'static str = "Learn the initial velocity from the first frames (gradient descent through the renderer and the MPM simulation)";
+    const UPSTREAM: &'static [&'static str] = &["ingest", "warmup"];
+
+    fn output_schemas(&self) -> Vec<(&'static str, u32)> {
+        Vec::new()
+    }
+
+    fn preset_params(&self, preset: Preset) -> Value {
+        match preset {
+            Preset::Draft => json!({"epochs": 12, "cells": 16}),
+            Preset::Standard => json!({"epochs": 30, "cells": 24}),
+            Preset::Paper => json!({"epochs": 100, "cells": 32, "precision": "f64"}),
+        }
+    }
+
+    fn scene_key(&self, scene: &SceneSpec) -> Value {
+        json!({
+            "material": scene.material,
+            "density": scene.density,
+            "gravity": scene.gravity,
+            "boundaries": scene.boundaries,
+        })
+    }
+
+    fn validate(&self, p: &VelocityParams) -> Result<(), ParamError> {
+        let bad = |path: &str, message: String| {
+            Err(ParamError {
+                path: path.into(),
+                message,
+            })
+        };
+        if p.frames < 2 {
+            return bad(
+                "frames",
+                format!("needs at least 2 frames, found {}", p.frames),
+            );
+        }
+        if p.epochs == 0 {
+            return bad("epochs", "must be at least 1".into());
+        }
+        for (name, v) in [
+            ("lr", p.lr),
+            ("lr_final", p.lr_final),
+            ("lr_angular", p.lr_angular),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(name, format!("must be finite and >= 0, found {v}"));
+            }
+        }
+        if !(p.cells.is_finite() && p.cells >= 4.0 && p.cells <= 512.0) {
+            return bad("cells", format!("must be in [4, 512], found {}", p.cells));
+        }
+        if !(0.0..=1.0).contains(&p.lambda) {
+            return bad("lambda", format!("must be in [0, 1], found {}", p.lambda));
+        }
+        if !(p.alpha_weight.is_finite() && p.alpha_weight >= 0.0) {
+            return bad(
+                "alpha_weight",
+                format!("must be >= 0, found {}", p.alpha_weight),
+            );
+        }
+        if p.grad_clip.is_nan() || p.grad_clip <= 0.0 {
+            return bad("grad_clip", format!("must be > 0, found {}", p.grad_clip));
+        }
+        check_guess(&p.guess)
+    }
+
+    fn run(&self, p: &VelocityParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
+        let inputs = Inputs::load(ctx)?;
+        let last = p.frames.saturating_sub(1).min(inputs.last_frame());
+        if last == 0 {
+            return Err(StageError::failed(FitError::Invalid(format!(
+                "stages.{}.frames = {}: the capture has no frame after frame 0",
+                ctx.name, p.frames
+            ))));
+        }
+        let material = MaterialValues::guess(inputs.family, ctx.scene.density, &p.guess);
+        check_family_guess(&material, &p.guess, ctx.name)?;
+        let object = inputs.object(ctx, &material, p.cells)?;
+        let centre = object.centre_of_mass().to_array();
+        let targets = inputs.train_targets(last)?;
+        let weights = LossWeights {
+            lambda: p.lambda,
+            alpha_weight: p.alpha_weight,
+        };
+        let fluid = is_fluid(inputs.family);
+        let mut loss = ViewsLoss::new(&object, fluid, &targets, weights, inputs.background);
+        ctx.progress.log(&format!(
+            "velocity: {} particles ({} Gaussians, {} fillers; {} floaters dropped), {:.2} kg, frames 1..={last}, {} views",
+            object.particles(),
+            object.rendered(),
+            object.particles() - object.rendered(),
+            object.floaters,
+            object.mass(),
+            targets.len()
+        ));
+
+        // Where the descent starts.
+        let g = DVec3::from_array(ctx.scene.gravity);
+        let start_v = match p.init {
+            VelocityInit::Zero => DVec3::ZERO,
+            VelocityInit::Hull => {
+                let frames: Vec<u16> = (0..=last).collect();
+                let centres = track::hull_centres(&inputs.ingest_dir, &inputs.frames.rows, &frames)
+                    .map_err(StageError::failed)?;
+                track::fit_velocity(&centres, g).unwrap_or(DVec3::ZERO)
+            }
+        };
+        let dims = match p.model {
+            VelocityModel::Translation => 3,
+            VelocityModel::Rigid => 6,
+        };
+        let mut x: Vec<f64> = start_v.to_array().to_vec();
+        x.resize(dims, 0.0);
+        let mut adam = Adam::new(dims);
+        let mut first_epoch = 0;
+        let mut start: Vec<f64> = x.clone();
+        let interrupt = ctx.interrupt_flag();
+        if let Some(ck) = ctx.resume::<Checkpoint>()
+            && ck.x.len() == dims
+        {
+            (first_epoch, x, adam, start) = (ck.epoch, ck.x, ck.adam, ck.start);
+        }
+        let rigid = |x: &[f64]| RigidVelocity {
+            linear: [x[0], x[1], x[2]],
+            angular: if x.len() == 6 {
+                [x[3], x[4], x[5]]
+            } else {
+                [0.0; 3]
+            },
+            centre,
+        };
+        let cfg = AdamConfig {
+            clip: p.grad_clip,
+            ..Default::default()
+        };
+        let precision = p.precision.mpm();
+        let fail = |epoch: u32, e: RolloutError| -> StageError {
+            match e {
+                RolloutError::Interrupted => StageError::Interrupted,
+                e => StageError::failed(FitError::Training {
+                    epoch,
+                    message: format!("{e}; try a smaller `lr`, `precision: f64` or more `cells`"),
+                }),
+            }
+        };
+        ctx.progress.start("epoch", u64::from(p.epochs));
+        ctx.progress.inc(u64::from(first_epoch));
+        for epoch in first_epoch..p.epochs {
+            ctx.check_interrupted()?;
+            let field = rigid(&x);
+            let v0 = field.field(&object);
+            let rollout = Rollout {
+                object: &object,
+                material: &material,
+                v0: &v0,
+                frames: last,
+                precision,
+                interrupt: Some(interrupt),
+            };
+            let out = rollout
+                .run(&mut loss, Wants::Velocity)
+                .map_err(|e| fail(epoch, e))?;
+            let gp = out.v0.as_ref().expect("a velocity rollout gives ∂L/∂v0");
+            let (gv, gw) = field.gradient(&object, gp);
+            let mut grad: Vec<f64> = gv.to_array().to_vec();
+            if dims == 6 {
+                grad.extend(gw.to_array());
+            }
+            if grad.iter().any(|v| !v.is_finite()) {
+                return Err(StageError::failed(FitError::Training {
+                    epoch,
+                    message: "non-finite gradient of the initial velocity".into(),
+                }));
+            }
+            let l = out.loss();
+            let mut metric = |name: &str, value: f64| {
+                ctx.metric(MetricRow {
+                    epoch: Some(epoch),
+                    view: None,
+                    frame: None,
+                    metric: name.into(),
+                    value,
+                })
+            };
+            metric("loss", l);
+            for (k, name) in ["vx", "vy", "vz", "wx", "wy", "wz"]
+                .iter()
+                .enumerate()
+                .take(dims)
+            {
+                metric(name, x[k]);
+            }
+            let progress = f64::from(epoch) / f64::from(p.epochs.max(2) - 1);
+            let lr_v = decayed(p.lr, p.lr_final, progress);
+            let lr_w = decayed(
+                p.lr_angular,
+                p.lr_angular * p.lr_final / p.lr.max(1e-300),
+                progress,
+            );
+            let lrs: Vec<f64> = (0..dims).map(|k| if k < 3 { lr_v } else { lr_w }).collect();
+            adam.step(&cfg, &mut x, &grad, &lrs);
+            ctx.progress.message(&format!(
+                "loss {l:.5}  v [{:.4}, {:.4}, {:.4}] m/s",
+                x[0], x[1], x[2]
+            ));
+            ctx.progress.inc(1);
+            ctx.checkpoint(
+                &format!("epoch {}", epoch + 1),
+                &Checkpoint {
+                    epoch: epoch + 1,
+                    x: x.clone(),
+                    adam: adam.clone(),
+                    start: start.clone(),
+                },
+            )?;
+        }
+        // The loss at the start and at the learned velocity.
+        let eval = |x: &[f64], loss: &mut ViewsLoss<'_>| -> Result<f64, StageError> {
+            let v0 = rigid(x).field(&object);
+            Rollout {
+                object: &object,
+                material: &material,
+                v0: &v0,
+                frames: last,
+                precision,
+                interrupt: Some(interrupt),
+            }
+            .run(loss, Wants::Loss)
+            .map(|o| o.loss())
+            .map_err(|e| fail(p.epochs, e))
+        };
+        let loss_start = eval(&start, &mut loss)?;
+        let loss_final = eval(&x, &mut loss)?;
+        let field = rigid(&x);
+        let result = VelocityResult {
+            model: p.model,
+            linear_velocity: field.linear,
+            angular_velocity: field.angular,
+            centre_of_mass: centre,
+            initial_velocity: field.mean(&object).to_array(),
+            start_velocity: [start[0], start[1], start[2]],
+            init: p.init,
+            frames: p.frames,
+            loss_start,
+            loss_final,
+            material,
+            particles: object.particles(),
+            gaussians: object.rendered(),
+            floaters: object.floaters,
+        };
+        for (metric, value) in [("loss_start", loss_start), ("loss_final", loss_final)] {
+            ctx.metric(MetricRow {
+                epoch: None,
+                view: None,
+                frame: None,
+                metric: metric.into(),
+                value,
+            });
+        }
+        let truth = crate::physics::fit::ground_truth(ctx.scene)
+            .and_then(|gt| serde_json::from_value::<[f64; 3]>(gt["v0"].clone()).ok());
+        let v = result.initial_velocity;
+        ctx.progress.log(&format!(
+            "learned initial velocity [{:.4}, {:.4}, {:.4}] m/s{} (started at [{:.4}, {:.4}, {:.4}]), angular [{:.3}, {:.3}, {:.3}] rad/s; loss {loss_start:.5} -> {loss_final:.5}",
+            v[0],
+            v[1],
+            v[2],
+            truth
+                .map(|t| format!(" (ground truth [{}, {}, {}])", t[0], t[1], t[2]))
+                .unwrap_or_default(),
+            start[0],
+            start[1],
+            start[2],
+            result.angular_velocity[0],
+            result.angular_velocity[1],
+            result.angular_velocity[2],
+        ));
+        crate::io::write_json(&ctx.out_dir.join("velocity.json"), &result)
+            .map_err(StageError::failed)?;
+        Ok(())
+    }
+}
+
+/// `guess:` values are finite, in their parameter's range.
+pub(crate) fn check_guess(guess: &BTreeMap<Param, f64>) -> Result<(), ParamError> {
+    for (p, v) in guess {
+        // A plasticine viscosity of 0 is the family's default (no viscosity).
+        if !(p.encodable(*v) || (*p == Param::Viscosity && *v == 0.0)) {
+            return Err(ParamError {
+                path: format!("guess.{}", p.name()),
+                message: format!(
+                    "{} = {v} is outside its range ({})",
+                    p.name(),
+                    match p {
+                        Param::Nu => "0 < nu < 0.49",
+                        Param::FrictionAngle => "0 < friction_angle < 80 degrees",
+                        _ => "finite and > 0",
+                    }
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// `guess:` names only parameters of the scene's family.
+pub(crate) fn check_family_guess(
+    material: &MaterialValues,
+    guess: &BTreeMap<Param, f64>,
+    stage: &str,
+) -> Result<(), StageError> {
+    for p in guess.keys() {
+        if material.get(*p).is_none() {
+            return Err(StageError::failed(FitError::Invalid(format!(
+                "stages.{stage}.guess.{}: the scene's family `{}` has no such parameter (it has {})",
+                p.name(),
+                crate::simulate::spec::family_name(material.family),
+                Param::of_family(material.family)
+                    .iter()
+                    .map(|p| p.name())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ))));
+        }
+    }
+    Ok(())
+}
