@@ -6,6 +6,7 @@
 //! Gaussians posed at its state ([`pose`], [`views`]).
 
 pub mod adam;
+pub mod descent;
 pub mod fit;
 pub mod object;
 pub mod params;

@@ -23,6 +23,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
 use crate::physics::adam::{Adam, AdamConfig, decayed};
+use crate::physics::descent::LineSearch;
 use crate::physics::fit::{FitError, Inputs, PrecisionParam, RigidVelocity};
 use crate::physics::object::sim_yaml;
 use crate::physics::params::{MaterialValues, Param};
@@ -41,6 +42,20 @@ pub enum MaterialModel {
     Global,
 }
 
+/// How the parameters are stepped.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Optimizer {
+    /// Gradient descent with a backtracking line search on the loss over every frame
+    /// ([`crate::physics::descent`]): each epoch one gradient and the forward rollouts of its
+    /// trials; stops early once no step above `lr_final` lowers the loss.
+    #[default]
+    LineSearch,
+    /// Adam with an exponentially decaying step: after every frame with `truncate: frame`
+    /// (online, as the seed method), once an epoch with `truncate: none`.
+    Adam,
+}
+
 /// Parameters of `material`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
@@ -57,14 +72,18 @@ pub struct MaterialParams {
     /// guess: E = 1e5 Pa, ν = 0.3, ...); parameters not learned keep it.
     #[serde(default)]
     pub guess: BTreeMap<Param, f64>,
-    /// Passes over the frames.
+    /// Gradient evaluations (each a rollout over the frames and its adjoint).
     #[serde(default = "epochs")]
     pub epochs: u32,
-    /// Adam's step at the start in the optimiser's coordinates (0.1 = ×1.26 on a modulus); it
-    /// decays to `lr_final`.
+    /// How the parameters are stepped.
+    #[serde(default)]
+    pub optimizer: Optimizer,
+    /// The first step in the optimiser's coordinates (0.5 = ×3.2 on a modulus): the line
+    /// search's first trial (it grows to 1 and shrinks as the loss asks), Adam's rate at the
+    /// start (decaying to `lr_final`).
     #[serde(default = "lr")]
     pub lr: f64,
-    /// Adam's step at the end.
+    /// The line search's smallest step (convergence), Adam's rate at the end.
     #[serde(default = "lr_final")]
     pub lr_final: f64,
     /// How far back a frame's loss is differentiated.
@@ -94,7 +113,7 @@ fn epochs() -> u32 {
     10
 }
 fn lr() -> f64 {
-    0.1
+    0.5
 }
 fn lr_final() -> f64 {
     0.005
@@ -120,6 +139,9 @@ struct Checkpoint {
     /// The learned parameters, in the optimiser's coordinates (order of `learned`).
     u: Vec<f64>,
     adam: Adam,
+    search: LineSearch,
+    /// The line search has converged.
+    converged: bool,
 }
 
 /// `material.json`.
@@ -182,7 +204,7 @@ impl TypedStage for MaterialStage {
 
     fn preset_params(&self, preset: Preset) -> Value {
         match preset {
-            Preset::Draft => json!({"epochs": 4, "cells": 16}),
+            Preset::Draft => json!({"epochs": 5, "cells": 16}),
             Preset::Standard => json!({"epochs": 10, "cells": 24}),
             Preset::Paper => json!({"epochs": 200, "cells": 48, "precision": "f64"}),
         }
@@ -332,12 +354,15 @@ impl TypedStage for MaterialStage {
             .map(|q| q.encode(guess.get(*q).unwrap_or(1.0)))
             .collect();
         let mut adam = Adam::new(learned.len());
+        let mut search = LineSearch::new(p.lr, p.lr_final, 1.0);
+        let mut converged = false;
         let mut first_epoch = 0;
         let interrupt = ctx.interrupt_flag();
         if let Some(ck) = ctx.resume::<Checkpoint>()
             && ck.u.len() == learned.len()
         {
-            (first_epoch, u, adam) = (ck.epoch, ck.u, ck.adam);
+            (first_epoch, u, adam, search, converged) =
+                (ck.epoch, ck.u, ck.adam, ck.search, ck.converged);
         }
         let cfg = AdamConfig {
             clip: p.grad_clip,
@@ -363,8 +388,22 @@ impl TypedStage for MaterialStage {
         let total_steps = (p.epochs * steps_per_epoch).max(2);
         ctx.progress.start("epoch", u64::from(p.epochs));
         ctx.progress.inc(u64::from(first_epoch));
+        let grad_u = |u: &[f64], grad: &BTreeMap<Param, f64>| -> Result<Vec<f64>, String> {
+            let g: Vec<f64> = learned
+                .iter()
+                .zip(u)
+                .map(|(q, u)| grad.get(q).copied().unwrap_or(0.0) * q.dvalue_du(*u))
+                .collect();
+            match learned.iter().zip(&g).find(|(_, v)| !v.is_finite()) {
+                Some((q, v)) => Err(format!("non-finite gradient of `{}` ({v})", q.name())),
+                None => Ok(g),
+            }
+        };
         for epoch in first_epoch..p.epochs {
             ctx.check_interrupted()?;
+            if converged {
+                break;
+            }
             let values = values_of(&u);
             let rollout = Rollout {
                 object: &object,
@@ -374,36 +413,58 @@ impl TypedStage for MaterialStage {
                 precision,
                 interrupt: Some(interrupt),
             };
-            let mut bad_grad: Option<String> = None;
             let step = |u: &mut Vec<f64>,
                         adam: &mut Adam,
                         grad: &BTreeMap<Param, f64>|
              -> Result<(), String> {
-                let g: Vec<f64> = learned
-                    .iter()
-                    .zip(u.iter())
-                    .map(|(q, u)| grad.get(q).copied().unwrap_or(0.0) * q.dvalue_du(*u))
-                    .collect();
-                if let Some((q, v)) = learned.iter().zip(&g).find(|(_, v)| !v.is_finite()) {
-                    return Err(format!("non-finite gradient of `{}` ({v})", q.name()));
-                }
+                let g = grad_u(u, grad)?;
                 let progress = f64::from(adam.t) / f64::from(total_steps - 1);
                 let lr = decayed(p.lr, p.lr_final, progress);
                 adam.step(&cfg, u, &g, &vec![lr; g.len()]);
                 Ok(())
             };
-            let out = match p.truncate {
-                Truncate::Frame => {
+            let mut taken = None;
+            let out = match (p.optimizer, p.truncate) {
+                (Optimizer::LineSearch, truncate) => {
+                    let out = rollout
+                        .run(&mut loss, Wants::Material(truncate))
+                        .map_err(|e| fail(epoch, e))?;
+                    let g = grad_u(&u, out.material.as_ref().expect("a gradient")).map_err(
+                        |message| {
+                            fail(
+                                epoch,
+                                RolloutError::Loss {
+                                    frame: last,
+                                    message,
+                                },
+                            )
+                        },
+                    )?;
+                    let it = search
+                        .iterate(&u, out.loss(), &g, |trial| {
+                            let v = values_of(trial);
+                            Rollout {
+                                material: &v,
+                                ..rollout
+                            }
+                            .run(&mut loss, Wants::Loss)
+                            .map(|o| o.loss())
+                        })
+                        .map_err(|e| fail(epoch, e))?;
+                    converged = search.converged();
+                    u = it.u.clone();
+                    taken = Some(it);
+                    Ok(out)
+                }
+                (Optimizer::Adam, Truncate::Frame) => {
                     let mut on_frame = |frame: u16, grad: &BTreeMap<Param, f64>| {
-                        step(&mut u, &mut adam, grad).map_err(|message| {
-                            bad_grad = Some(message.clone());
-                            RolloutError::Loss { frame, message }
-                        })?;
+                        step(&mut u, &mut adam, grad)
+                            .map_err(|message| RolloutError::Loss { frame, message })?;
                         Ok(Some(values_of(&u)))
                     };
                     rollout.run_online(&mut loss, &mut on_frame)
                 }
-                Truncate::None => rollout
+                (Optimizer::Adam, Truncate::None) => rollout
                     .run(&mut loss, Wants::Material(Truncate::None))
                     .and_then(|o| {
                         let grad = o.material.clone().unwrap_or_default();
@@ -431,6 +492,11 @@ impl TypedStage for MaterialStage {
             metric("loss", l);
             metric("train_psnr", psnr);
             metric("substeps", out.substeps.iter().sum::<usize>() as f64);
+            if let Some(it) = &taken {
+                metric("step", it.step);
+                metric("trials", it.trials as f64);
+                metric("loss_after_step", it.loss);
+            }
             for (q, v) in &now.values {
                 metric(q.name(), *v);
             }
@@ -449,6 +515,8 @@ impl TypedStage for MaterialStage {
                     epoch: epoch + 1,
                     u: u.clone(),
                     adam: adam.clone(),
+                    search: search.clone(),
+                    converged,
                 },
             )?;
         }

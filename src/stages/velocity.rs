@@ -3,11 +3,12 @@
 //! guess of its family (in free flight it barely matters).
 //!
 //! The descent starts from the velocity of the masks' visual hulls over those frames
-//! ([`crate::physics::track`], `init: hull`), then Adam steps the translation (`model:
-//! translation`, 3 numbers) or the rigid motion (`model: rigid`, linear and angular velocity
-//! about the centre of mass, 6 numbers) on the image loss of the training views of frames
-//! `1..frames` (frame 0 is the canonical state), back-propagated through every frame to the
-//! initial velocity. Writes `velocity.json` and `metrics.arrow` (the loss and the learned values
+//! ([`crate::physics::track`], `init: hull`), then a gradient descent with a line search
+//! ([`crate::physics::descent`]) steps the translation (`model: translation`, 3 numbers) or the
+//! rigid motion (`model: rigid`, linear and angular velocity about the centre of mass, 6
+//! numbers; the angular one measured as the speed it gives at the object's radius) on the
+//! image loss of the training views of frames `1..frames` (frame 0 is the canonical state),
+//! back-propagated through every frame to the initial velocity. Writes `velocity.json` and `metrics.arrow` (the loss and the learned values
 //! per epoch); checkpoints every epoch, so an interrupted run resumes.
 
 use std::collections::BTreeMap;
@@ -17,7 +18,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
-use crate::physics::adam::{Adam, AdamConfig, decayed};
+use crate::physics::descent::LineSearch;
 use crate::physics::fit::{FitError, Inputs, PrecisionParam, RigidVelocity};
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::rollout::{Rollout, RolloutError, Wants, is_fluid};
@@ -63,18 +64,17 @@ pub struct VelocityParams {
     /// Where the descent starts.
     #[serde(default)]
     pub init: VelocityInit,
-    /// Adam steps (one rollout each).
+    /// Gradient evaluations (each a rollout over the frames and its adjoint); the descent stops
+    /// earlier once it has converged.
     #[serde(default = "epochs")]
     pub epochs: u32,
-    /// Step of the linear velocity at the start (m/s); it decays to `lr_final`.
+    /// The line search's first step (m/s; the angular velocity's step is the speed it gives
+    /// at the object's radius).
     #[serde(default = "lr")]
     pub lr: f64,
-    /// Step of the linear velocity at the end (m/s).
+    /// The smallest step (m/s): below it the descent has converged.
     #[serde(default = "lr_final")]
     pub lr_final: f64,
-    /// Step of the angular velocity at the start (rad/s), decaying in the same ratio.
-    #[serde(default = "lr_angular")]
-    pub lr_angular: f64,
     /// The material held during the fit: values of the scene family's parameters
     /// (`E`, `nu`, `yield_stress`, `viscosity`, `bulk_modulus`, `friction_angle`; SI units,
     /// degrees), each defaulting to the family's guess (E = 1e5 Pa, ν = 0.3, ...).
@@ -92,9 +92,6 @@ pub struct VelocityParams {
     /// Weight of the silhouette term `mean|α − mask|`.
     #[serde(default = "alpha_weight")]
     pub alpha_weight: f64,
-    /// Gradients longer than this are scaled down to it (`∞`: never).
-    #[serde(default = "grad_clip")]
-    pub grad_clip: f64,
 }
 
 fn frames() -> u16 {
@@ -107,10 +104,7 @@ fn lr() -> f64 {
     0.05
 }
 fn lr_final() -> f64 {
-    0.005
-}
-fn lr_angular() -> f64 {
-    0.5
+    0.0005
 }
 fn cells() -> f64 {
     24.0
@@ -121,9 +115,6 @@ fn lambda() -> f64 {
 fn alpha_weight() -> f64 {
     0.1
 }
-fn grad_clip() -> f64 {
-    1.0
-}
 
 /// What an interrupted run resumes from.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -132,7 +123,8 @@ struct Checkpoint {
     epoch: u32,
     /// The learned values, in the optimiser's order.
     x: Vec<f64>,
-    adam: Adam,
+    search: LineSearch,
+    converged: bool,
     /// Where the descent started.
     start: Vec<f64>,
 }
@@ -217,11 +209,7 @@ impl TypedStage for Velocity {
         if p.epochs == 0 {
             return bad("epochs", "must be at least 1".into());
         }
-        for (name, v) in [
-            ("lr", p.lr),
-            ("lr_final", p.lr_final),
-            ("lr_angular", p.lr_angular),
-        ] {
+        for (name, v) in [("lr", p.lr), ("lr_final", p.lr_final)] {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(name, format!("must be finite and >= 0, found {v}"));
             }
@@ -237,9 +225,6 @@ impl TypedStage for Velocity {
                 "alpha_weight",
                 format!("must be >= 0, found {}", p.alpha_weight),
             );
-        }
-        if p.grad_clip.is_nan() || p.grad_clip <= 0.0 {
-            return bad("grad_clip", format!("must be > 0, found {}", p.grad_clip));
         }
         check_guess(&p.guess)
     }
@@ -291,27 +276,36 @@ impl TypedStage for Velocity {
         };
         let mut x: Vec<f64> = start_v.to_array().to_vec();
         x.resize(dims, 0.0);
-        let mut adam = Adam::new(dims);
+        let mut search = LineSearch::new(p.lr, p.lr_final, 20.0 * p.lr);
+        let mut converged = false;
         let mut first_epoch = 0;
         let mut start: Vec<f64> = x.clone();
         let interrupt = ctx.interrupt_flag();
         if let Some(ck) = ctx.resume::<Checkpoint>()
             && ck.x.len() == dims
         {
-            (first_epoch, x, adam, start) = (ck.epoch, ck.x, ck.adam, ck.start);
+            (first_epoch, x, search, converged, start) =
+                (ck.epoch, ck.x, ck.search, ck.converged, ck.start);
         }
+        // The angular velocity's coordinates are the speed (m/s) it gives at the object's
+        // radius, comparable with the linear velocity's.
+        let c = DVec3::from_array(centre);
+        let radius = object
+            .body
+            .state
+            .x
+            .iter()
+            .map(|x| (*x - c).length())
+            .fold(0.0, f64::max)
+            .max(1e-6);
         let rigid = |x: &[f64]| RigidVelocity {
             linear: [x[0], x[1], x[2]],
             angular: if x.len() == 6 {
-                [x[3], x[4], x[5]]
+                [x[3] / radius, x[4] / radius, x[5] / radius]
             } else {
                 [0.0; 3]
             },
             centre,
-        };
-        let cfg = AdamConfig {
-            clip: p.grad_clip,
-            ..Default::default()
         };
         let precision = p.precision.mpm();
         let fail = |epoch: u32, e: RolloutError| -> StageError {
@@ -327,6 +321,9 @@ impl TypedStage for Velocity {
         ctx.progress.inc(u64::from(first_epoch));
         for epoch in first_epoch..p.epochs {
             ctx.check_interrupted()?;
+            if converged {
+                break;
+            }
             let field = rigid(&x);
             let v0 = field.field(&object);
             let rollout = Rollout {
@@ -344,7 +341,7 @@ impl TypedStage for Velocity {
             let (gv, gw) = field.gradient(&object, gp);
             let mut grad: Vec<f64> = gv.to_array().to_vec();
             if dims == 6 {
-                grad.extend(gw.to_array());
+                grad.extend((gw / radius).to_array());
             }
             if grad.iter().any(|v| !v.is_finite()) {
                 return Err(StageError::failed(FitError::Training {
@@ -363,22 +360,24 @@ impl TypedStage for Velocity {
                 })
             };
             metric("loss", l);
-            for (k, name) in ["vx", "vy", "vz", "wx", "wy", "wz"]
-                .iter()
-                .enumerate()
-                .take(dims)
-            {
+            for (k, name) in ["vx", "vy", "vz"].iter().enumerate() {
                 metric(name, x[k]);
             }
-            let progress = f64::from(epoch) / f64::from(p.epochs.max(2) - 1);
-            let lr_v = decayed(p.lr, p.lr_final, progress);
-            let lr_w = decayed(
-                p.lr_angular,
-                p.lr_angular * p.lr_final / p.lr.max(1e-300),
-                progress,
-            );
-            let lrs: Vec<f64> = (0..dims).map(|k| if k < 3 { lr_v } else { lr_w }).collect();
-            adam.step(&cfg, &mut x, &grad, &lrs);
+            for (k, name) in ["wx", "wy", "wz"].iter().enumerate() {
+                metric(name, field.angular[k]);
+            }
+            let it = search
+                .iterate(&x, l, &grad, |trial| {
+                    let v0 = rigid(trial).field(&object);
+                    Rollout { v0: &v0, ..rollout }
+                        .run(&mut loss, Wants::Loss)
+                        .map(|o| o.loss())
+                })
+                .map_err(|e| fail(epoch, e))?;
+            metric("step", it.step);
+            metric("trials", it.trials as f64);
+            x = it.u;
+            converged = search.converged();
             ctx.progress.message(&format!(
                 "loss {l:.5}  v [{:.4}, {:.4}, {:.4}] m/s",
                 x[0], x[1], x[2]
@@ -389,7 +388,8 @@ impl TypedStage for Velocity {
                 &Checkpoint {
                     epoch: epoch + 1,
                     x: x.clone(),
-                    adam: adam.clone(),
+                    search: search.clone(),
+                    converged,
                     start: start.clone(),
                 },
             )?;

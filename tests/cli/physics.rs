@@ -316,3 +316,175 @@ fn a_newtonian_scene_learns_only_the_fluids_parameters() {
     let keys: Vec<Param> = out.material.unwrap().into_keys().collect();
     assert_eq!(keys, vec![Param::Viscosity, Param::BulkModulus]);
 }
+
+/// A pipeline over the fixture scene (the demo's torus) in `dir`: `stages` is the `stages:`
+/// body (lines indented by two spaces).
+fn demo_pipeline(dir: &std::path::Path, preset: &str, stages: &str) -> PathBuf {
+    let file = dir.join("p.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "name: t\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: [10]\n  material: elastic\npreset: {preset}\nstages:\n{stages}",
+            crate::support::fixture_scene().display()
+        ),
+    )
+    .unwrap();
+    file
+}
+
+/// Runs `file` in this process with the built-in stages.
+fn run_builtin(dir: &std::path::Path, file: &std::path::Path, until: Option<&str>) {
+    let reg = pipe::stages::builtin();
+    let p = pipe::pipeline::spec::load(file, &reg, &Default::default()).unwrap();
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    pipe::pipeline::runner::Workspace::new(dir)
+        .run(
+            &p,
+            &reg,
+            &pipe::pipeline::runner::RunOptions {
+                until: until.map(str::to_string),
+                ..Default::default()
+            },
+            &pipe::pipeline::progress::Reporter::new(pipe::pipeline::progress::Mode::Quiet),
+            &stop,
+            "test",
+        )
+        .unwrap();
+}
+
+/// The committed entry of `stage`.
+fn entry(dir: &std::path::Path, file: &std::path::Path, stage: &str) -> PathBuf {
+    let reg = pipe::stages::builtin();
+    let p = pipe::pipeline::spec::load(file, &reg, &Default::default()).unwrap();
+    pipe::pipeline::runner::Workspace::new(dir)
+        .cached_entry(&p, &reg, stage)
+        .unwrap()
+}
+
+/// The demo with `draft`, its material started 10× too stiff: the learned Young's modulus ends
+/// within 2× of the truth (1e6 Pa) and the initial velocity within 0.05 m/s of (0.15, −0.3,
+/// 0.1) m/s. Shortened to fit the test suite: a warm-up of 60 epochs and at most 6 000
+/// Gaussians, 4 material epochs.
+#[test]
+fn the_demo_at_draft_learns_velocity_and_e_from_ten_times_too_stiff() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = demo_pipeline(
+        dir.path(),
+        "draft",
+        "  ingest: {}\n  init: {}\n  warmup: {epochs: 60, max_gaussians: 6000}\n  velocity: {}\n  \
+         material: {epochs: 4, guess: {E: 1.0e7}}\n",
+    );
+    run_builtin(dir.path(), &file, None);
+    let m: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(entry(dir.path(), &file, "material").join("material.json"))
+            .unwrap(),
+    )
+    .unwrap();
+    let e = m["youngs_modulus"].as_f64().unwrap();
+    let nu = m["poisson_ratio"].as_f64().unwrap();
+    println!("learned E {e:.4e} Pa, nu {nu:.4}; material.json: {m}");
+    assert!(e > 0.5e6 && e < 2e6, "E = {e:e} Pa, truth 1e6");
+    assert!(nu > 0.0 && nu < 0.49);
+    let v: [f64; 3] = serde_json::from_value(m["initial_velocity"].clone()).unwrap();
+    let err = (DVec3::from_array(v) - DVec3::new(0.15, -0.3, 0.1)).length();
+    assert!(err <= 0.05, "v0 {v:?}: {err} m/s off");
+    assert!(m["loss_final"].as_f64().unwrap() < m["loss_guess"].as_f64().unwrap());
+    // Only the family's parameters: no fluid or plastic ones.
+    assert!(m["viscosity"].is_null() && m["yield_stress"].is_null());
+    for f in ["scene.sim.yaml", "particles.arrow", "metrics.arrow"] {
+        assert!(
+            entry(dir.path(), &file, "material").join(f).is_file(),
+            "{f}"
+        );
+    }
+}
+
+/// `kill -9` of `pipe run` during `material`: the next run resumes from the last checkpoint,
+/// says so, and writes the same `material.json` and `particles.arrow` as an uninterrupted run.
+#[test]
+fn a_killed_material_stage_resumes_to_the_same_result() {
+    let stages = "  ingest: {frames: [0, 1, 2, 3, 4]}\n  init: {}\n  warmup: {epochs: 20}\n  \
+                  velocity: {epochs: 2, frames: 3, cells: 10}\n  \
+                  material: {epochs: 4, cells: 10, guess: {E: 3.0e5}}\n";
+    // Uninterrupted.
+    let a = tempfile::tempdir().unwrap();
+    let file_a = demo_pipeline(a.path(), "draft", stages);
+    run_builtin(a.path(), &file_a, None);
+    let read = |dir: &std::path::Path, file: &std::path::Path, name: &str| {
+        std::fs::read(entry(dir, file, "material").join(name)).unwrap()
+    };
+    // Killed once its first checkpoint exists, then run again.
+    let b = tempfile::tempdir().unwrap();
+    let file_b = demo_pipeline(b.path(), "draft", stages);
+    run_builtin(b.path(), &file_b, Some("velocity"));
+    let pipe_bin = env!("CARGO_BIN_EXE_pipe");
+    let mut child = std::process::Command::new(pipe_bin)
+        .args(["--quiet", "--workdir"])
+        .arg(b.path())
+        .arg("run")
+        .arg(&file_b)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let checkpoints = b.path().join(".pipe/checkpoints");
+    let started = std::time::Instant::now();
+    let has_checkpoint = || {
+        walk(&checkpoints)
+            .iter()
+            .any(|p| p.ends_with("checkpoint.json") && p.to_string_lossy().contains("material-"))
+    };
+    while !has_checkpoint() {
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the run ended before its first checkpoint"
+        );
+        assert!(
+            started.elapsed().as_secs() < 300,
+            "no checkpoint after 300 s"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let status = std::process::Command::new("kill")
+        .args(["-9", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    child.wait().unwrap();
+    let out = std::process::Command::new(pipe_bin)
+        .args(["--quiet", "--workdir"])
+        .arg(b.path())
+        .arg("run")
+        .arg(&file_b)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("resuming `material` from its checkpoint"),
+        "the re-run says it resumed: {stderr}"
+    );
+    for name in ["material.json", "particles.arrow", "scene.sim.yaml"] {
+        assert_eq!(
+            read(a.path(), &file_a, name),
+            read(b.path(), &file_b, name),
+            "{name} differs from the uninterrupted run's"
+        );
+    }
+}
+
+/// Every file under `dir`.
+fn walk(dir: &std::path::Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    if let Ok(rd) = std::fs::read_dir(dir) {
+        for e in rd.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                out.extend(walk(&p));
+            } else {
+                out.push(p);
+            }
+        }
+    }
+    out
+}
