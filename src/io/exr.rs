@@ -14,6 +14,18 @@ pub struct ExrError {
 
 /// Write a `width × height` row-major depth map (metres) as channel `Z`, atomically.
 pub fn write_depth(path: &Path, width: u32, height: u32, depth: &[f32]) -> Result<(), ExrError> {
+    write_channel(path, "Z", width, height, depth)
+}
+
+/// Write a `width × height` row-major single-channel float image (channel `name`, e.g. `A`
+/// for alpha), atomically.
+pub fn write_channel(
+    path: &Path,
+    name: &str,
+    width: u32,
+    height: u32,
+    depth: &[f32],
+) -> Result<(), ExrError> {
     use exr::prelude::*;
     let err = |message: String| ExrError {
         path: path.to_path_buf(),
@@ -27,7 +39,7 @@ pub fn write_depth(path: &Path, width: u32, height: u32, depth: &[f32]) -> Resul
     }
     let w = width as usize;
     let pixels = SpecificChannels::build()
-        .with_channel("Z")
+        .with_channel(name)
         .with_pixel_fn(|p: Vec2<usize>| (depth[p.1 * w + p.0],));
     let image = Image::from_channels((w, height as usize), pixels);
     let tmp = path.with_extension(format!("exr.{}.tmp", std::process::id()));

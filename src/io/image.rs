@@ -105,3 +105,26 @@ fn write_png(
         .map_err(|e| err(e.to_string()))?;
     crate::pipeline::cache::write_atomic(path, &bytes).map_err(|e| err(e.to_string()))
 }
+
+/// Ground truth | render | 4× absolute difference, side by side.
+pub fn compare_strip(truth: &[u8], render: &[u8], w: usize, h: usize) -> Rgb8 {
+    let mut data = vec![0u8; 3 * w * h * 3];
+    for y in 0..h {
+        for x in 0..w {
+            for c in 0..3 {
+                let i = (y * w + x) * 3 + c;
+                let row = y * 3 * w * 3;
+                data[row + x * 3 + c] = truth[i];
+                data[row + (w + x) * 3 + c] = render[i];
+                data[row + (2 * w + x) * 3 + c] = (4
+                    * (i32::from(truth[i]) - i32::from(render[i])).unsigned_abs())
+                .min(255) as u8;
+            }
+        }
+    }
+    Rgb8 {
+        width: 3 * w as u32,
+        height: h as u32,
+        data,
+    }
+}

@@ -689,7 +689,7 @@ impl TypedStage for Warmup {
                             .collect(),
                     };
                     let (render, object) = (rgb8(&over), rgb8(&on_solid));
-                    let side = side_by_side(&rgb8(&truth).data, &render.data, w, h);
+                    let side = image::compare_strip(&rgb8(&truth).data, &render.data, w, h);
                     for (name, picture) in [
                         (format!("test_v{view}_f{frame}.png"), &render),
                         (format!("object_v{view}_f{frame}.png"), &object),
@@ -728,29 +728,6 @@ impl TypedStage for Warmup {
             .log(&format!("{} Gaussians; {}", g.len(), summary.join("; ")));
         table::write(&ctx.out_dir.join("gaussians.arrow"), &g).map_err(StageError::failed)?;
         Ok(())
-    }
-}
-
-/// Ground truth | render | 4× absolute difference, side by side.
-fn side_by_side(truth: &[u8], render: &[u8], w: usize, h: usize) -> Rgb8 {
-    let mut data = vec![0u8; 3 * w * h * 3];
-    for y in 0..h {
-        for x in 0..w {
-            for c in 0..3 {
-                let i = (y * w + x) * 3 + c;
-                let row = y * 3 * w * 3;
-                data[row + x * 3 + c] = truth[i];
-                data[row + (w + x) * 3 + c] = render[i];
-                data[row + (2 * w + x) * 3 + c] = (4
-                    * (i32::from(truth[i]) - i32::from(render[i])).unsigned_abs())
-                .min(255) as u8;
-            }
-        }
-    }
-    Rgb8 {
-        width: 3 * w as u32,
-        height: h as u32,
-        data,
     }
 }
 

@@ -1,0 +1,680 @@
+//! Stage `evaluate`: re-simulates the learned scene from frame 0 (the canonical Gaussians,
+//! `velocity`'s initial velocity, `material`'s material: the same rollout the stages trained
+//! on, on `pipe simulate`'s body) and scores it against the capture in every view and frame.
+//!
+//! Each view is rendered over black and composited over its camera's plate, and compared with
+//! the capture inside the ingested mask and the plate outside (as `warmup` scores). Per (view,
+//! frame, split) `metrics.arrow` holds `psnr`, `ssim`, `psnr_mask` (inside the object's mask)
+//! and `mask_iou` (rendered alpha > ½ against the mask). Where the scene folder has ground
+//! truth (`gt/params.json`, `gt/particles/<f>.ply`), the parameter errors and the per-frame
+//! mean Chamfer distance between the simulated and the true particles are added.
+//! `evaluation.json` summarises; `renders/` holds a PNG per view and frame, alpha and depth
+//! as EXR, and an animated GIF per rendered view (captured | ours | 4× error).
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use glam::DVec3;
+use pipe_mpm::{State, StateGrad};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+
+use crate::io::image::{self, Rgb8};
+use crate::physics::fit::{FitError, Inputs, PrecisionParam, RigidVelocity};
+use crate::physics::object::Object;
+use crate::physics::params::{MaterialValues, Param};
+use crate::physics::pose::Pose;
+use crate::physics::rollout::{FrameLoss, Rollout, RolloutError, Wants, is_fluid};
+use crate::pipeline::spec::{Preset, SceneSpec};
+use crate::pipeline::stage::{
+    InputFile, MetricRow, ParamError, StageContext, StageError, TypedStage,
+};
+use crate::scene::frames::{FrameRow, Role};
+use crate::scene::targets::{self, Target, composite};
+use crate::stages::material::MaterialResult;
+use crate::stages::velocity::VelocityResult;
+
+/// Which views are rendered to files (all views are scored).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum ViewSet {
+    /// The held-out views (`scene.test_views`).
+    #[default]
+    Test,
+    /// Every view.
+    All,
+}
+
+/// Parameters of `evaluate`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct EvaluateParams {
+    /// Views whose renders are written (PNG, EXR, GIF); every view is scored.
+    #[serde(default)]
+    pub views: ViewSet,
+    /// Write the renders (PNG per view and frame, alpha and depth EXR, a GIF per view).
+    #[serde(default = "yes")]
+    pub renders: bool,
+    /// Precision of the re-simulation.
+    #[serde(default)]
+    pub precision: PrecisionParam,
+    /// Milliseconds per GIF frame.
+    #[serde(default = "gif_ms")]
+    pub gif_ms: u32,
+}
+
+fn yes() -> bool {
+    true
+}
+fn gif_ms() -> u32 {
+    150
+}
+
+/// The scores of one view in one frame.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ViewScore {
+    /// Camera.
+    pub view: u16,
+    /// Frame.
+    pub frame: u16,
+    /// Whether the view was held out of training.
+    pub test: bool,
+    /// PSNR (dB) and SSIM of the composite over the plate against the capture.
+    pub psnr: f64,
+    pub ssim: f64,
+    /// PSNR (dB) inside the object's mask.
+    pub psnr_mask: f64,
+    /// IoU of the rendered alpha (> ½) against the mask.
+    pub mask_iou: f64,
+}
+
+/// `evaluation.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Evaluation {
+    /// Mean over the test views and frames (every frame, 0 included).
+    pub test_psnr_mean: Option<f64>,
+    pub test_ssim_mean: Option<f64>,
+    /// Test-view mean at frame 0 and at the last frame.
+    pub test_psnr_first_frame: Option<f64>,
+    pub test_psnr_last_frame: Option<f64>,
+    /// Mean over the training views and frames.
+    pub train_psnr_mean: Option<f64>,
+    pub train_ssim_mean: Option<f64>,
+    /// Test-view mean PSNR inside the mask and mask IoU.
+    pub test_psnr_mask_mean: Option<f64>,
+    pub test_mask_iou_mean: Option<f64>,
+    /// Mean PSNR (dB) of the test views at each frame.
+    pub test_psnr_per_frame: Vec<f64>,
+    /// The learned parameters (`material.json`'s, and the initial velocity, m/s).
+    pub learned: BTreeMap<String, f64>,
+    pub initial_velocity: [f64; 3],
+    /// The scene's ground truth, when it has one (same names; v0 in m/s).
+    pub ground_truth: Option<BTreeMap<String, f64>>,
+    pub ground_truth_v0: Option<[f64; 3]>,
+    /// Errors against it: `|log10 learned − log10 truth|` for moduli, stresses and
+    /// viscosities, absolute differences for ν and the friction angle, `|v0 − v0_true|` (m/s).
+    pub errors: Option<BTreeMap<String, f64>>,
+    /// Mean Chamfer distance (m) between simulated and true particles, per frame and at the
+    /// last frame.
+    pub chamfer_per_frame_m: Vec<f64>,
+    pub chamfer_last_frame_m: Option<f64>,
+    /// Wall time (s) of every stage that made these results, and of this one.
+    pub stage_wall_s: BTreeMap<String, f64>,
+    /// Frames evaluated (`0..=frames`), test views.
+    pub frames: u16,
+    pub test_views: Vec<u16>,
+}
+
+/// The `evaluate` stage.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Evaluate;
+
+impl TypedStage for Evaluate {
+    type Params = EvaluateParams;
+    const KIND: &'static str = "evaluate";
+    const VERSION: u32 = 1;
+    const DESCRIPTION: &'static str = "Re-simulate the learned scene and score it in every view and frame (PSNR, SSIM, mask IoU; parameter and Chamfer errors against ground truth)";
+    const UPSTREAM: &'static [&'static str] = &["ingest", "init", "warmup", "velocity", "material"];
+
+    fn output_schemas(&self) -> Vec<(&'static str, u32)> {
+        Vec::new()
+    }
+
+    fn preset_params(&self, _preset: Preset) -> Value {
+        json!({})
+    }
+
+    fn scene_key(&self, scene: &SceneSpec) -> Value {
+        json!({
+            "material": scene.material,
+            "density": scene.density,
+            "gravity": scene.gravity,
+            "boundaries": scene.boundaries,
+            "test_views": scene.test_views,
+        })
+    }
+
+    fn validate(&self, p: &EvaluateParams) -> Result<(), ParamError> {
+        if p.gif_ms == 0 || p.gif_ms > 10_000 {
+            return Err(ParamError {
+                path: "gif_ms".into(),
+                message: format!("must be in 1..=10000, found {}", p.gif_ms),
+            });
+        }
+        Ok(())
+    }
+
+    fn inputs(&self, _p: &EvaluateParams, scene: &SceneSpec) -> Result<Vec<InputFile>, StageError> {
+        // The ground truth, when the scene folder has it.
+        let mut out = Vec::new();
+        let params = scene.path.join("gt/params.json");
+        if params.is_file() {
+            out.push(InputFile {
+                logical_name: "gt/params.json".into(),
+                path: params,
+            });
+        }
+        let dir = scene.path.join("gt/particles");
+        if let Ok(rd) = std::fs::read_dir(&dir) {
+            let mut names: Vec<String> = rd
+                .flatten()
+                .filter_map(|e| e.file_name().into_string().ok())
+                .filter(|n| {
+                    n.ends_with(".ply") && n.trim_end_matches(".ply").parse::<u16>().is_ok()
+                })
+                .collect();
+            names.sort();
+            for n in names {
+                out.push(InputFile {
+                    logical_name: format!("gt/particles/{n}"),
+                    path: dir.join(&n),
+                });
+            }
+        }
+        Ok(out)
+    }
+
+    fn run(&self, p: &EvaluateParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
+        let inputs = Inputs::load(ctx)?;
+        let velocity: VelocityResult =
+            crate::io::read_json(&ctx.upstream("velocity")?.dir.join("velocity.json"))
+                .map_err(StageError::failed)?;
+        let learned: MaterialResult =
+            crate::io::read_json(&ctx.upstream("material")?.dir.join("material.json"))
+                .map_err(StageError::failed)?;
+        let family = inputs.family;
+        let mut values = MaterialValues::guess(family, ctx.scene.density, &BTreeMap::new());
+        for (q, v) in [
+            (Param::E, learned.youngs_modulus),
+            (Param::Nu, learned.poisson_ratio),
+            (Param::YieldStress, learned.yield_stress),
+            (Param::Viscosity, learned.viscosity),
+            (Param::BulkModulus, learned.bulk_modulus),
+            (Param::FrictionAngle, learned.friction_angle_deg),
+        ] {
+            if let (Some(v), true) = (v, values.get(q).is_some()) {
+                values.values.insert(q, v);
+            }
+        }
+        let cells = object_cells(ctx)?;
+        let object = inputs.object(ctx, &values, cells)?;
+        let rigid = RigidVelocity {
+            linear: velocity.linear_velocity,
+            angular: velocity.angular_velocity,
+            centre: object.centre_of_mass().to_array(),
+        };
+        let v0 = rigid.field(&object);
+        let last = inputs.last_frame();
+        let all_rows: Vec<&FrameRow> = inputs.frames.rows.iter().collect();
+        let targets = targets::load(&inputs.ingest_dir, &all_rows).map_err(StageError::failed)?;
+        let written: Vec<u16> = match p.views {
+            ViewSet::Test => ctx.scene.test_views.clone(),
+            ViewSet::All => {
+                let mut v: Vec<u16> = targets.iter().map(|t| t.row.view).collect();
+                v.sort_unstable();
+                v.dedup();
+                v
+            }
+        };
+        let gt_dir = ctx.scene.path.join("gt/particles");
+        let out_dir = ctx.out_dir.to_path_buf();
+        if p.renders {
+            for sub in ["renders", "renders/alpha", "renders/depth"] {
+                std::fs::create_dir_all(out_dir.join(sub)).map_err(StageError::failed)?;
+            }
+        }
+        let mut eval = Scorer {
+            object: &object,
+            fluid: is_fluid(family),
+            targets: &targets,
+            background: inputs.background,
+            written: &written,
+            out_dir: &out_dir,
+            renders: p.renders,
+            scores: Vec::new(),
+            chamfer: Vec::new(),
+            gt_dir: &gt_dir,
+            gif: BTreeMap::new(),
+        };
+        ctx.progress.log(&format!(
+            "evaluate: re-simulating frames 1..={last} ({} particles), scoring {} views",
+            object.particles(),
+            {
+                let mut v: Vec<u16> = targets.iter().map(|t| t.row.view).collect();
+                v.sort_unstable();
+                v.dedup();
+                v.len()
+            }
+        ));
+        let started = std::time::Instant::now();
+        // Frame 0 is the canonical state.
+        let mut s0 = object.body.state.clone();
+        for (v, w) in s0.v.iter_mut().zip(&v0) {
+            *v = *w;
+        }
+        eval.frame(0, &s0, None).map_err(|e| train_error(e))?;
+        Rollout {
+            object: &object,
+            material: &values,
+            v0: &v0,
+            frames: last,
+            precision: p.precision.mpm(),
+            interrupt: Some(ctx.interrupt_flag()),
+        }
+        .run(&mut eval, Wants::Loss)
+        .map_err(train_error)?;
+        if p.renders {
+            for (view, frames) in &eval.gif {
+                write_gif(
+                    &out_dir.join(format!("renders/v{view}.gif")),
+                    frames,
+                    p.gif_ms,
+                )
+                .map_err(StageError::failed)?;
+            }
+        }
+        let scores = eval.scores.clone();
+        let chamfer = eval.chamfer.clone();
+        for s in &scores {
+            for (metric, value) in [
+                ("psnr", s.psnr),
+                ("ssim", s.ssim),
+                ("psnr_mask", s.psnr_mask),
+                ("mask_iou", s.mask_iou),
+            ] {
+                ctx.metric(MetricRow {
+                    epoch: None,
+                    view: Some(s.view),
+                    frame: Some(s.frame),
+                    metric: format!("{}_{metric}", if s.test { "test" } else { "train" }),
+                    value,
+                });
+            }
+        }
+        for (f, c) in chamfer.iter().enumerate() {
+            ctx.metric(MetricRow {
+                epoch: None,
+                view: None,
+                frame: Some(f as u16),
+                metric: "chamfer_m".into(),
+                value: *c,
+            });
+        }
+        let mean = |it: &mut dyn Iterator<Item = f64>| {
+            let v: Vec<f64> = it.collect();
+            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+        };
+        let test = |s: &&ViewScore| s.test;
+        let train = |s: &&ViewScore| !s.test;
+        let per_frame: Vec<f64> = (0..=last)
+            .filter_map(|f| {
+                mean(
+                    &mut scores
+                        .iter()
+                        .filter(test)
+                        .filter(|s| s.frame == f)
+                        .map(|s| s.psnr),
+                )
+            })
+            .collect();
+        let mut learned_map = BTreeMap::new();
+        for (name, v) in [
+            ("E", learned.youngs_modulus),
+            ("nu", learned.poisson_ratio),
+            ("yield_stress", learned.yield_stress),
+            ("viscosity", learned.viscosity),
+            ("bulk_modulus", learned.bulk_modulus),
+            ("friction_angle", learned.friction_angle_deg),
+        ] {
+            if let Some(v) = v {
+                learned_map.insert(name.to_string(), v);
+            }
+        }
+        let (truth, truth_v0) = ground_truth(ctx.scene, &learned.family);
+        let errors = truth.as_ref().map(|t| {
+            let mut e = BTreeMap::new();
+            for (name, l) in &learned_map {
+                if let Some(t) = t.get(name) {
+                    let err = match name.as_str() {
+                        "nu" | "friction_angle" => (l - t).abs(),
+                        _ if *t > 0.0 && *l > 0.0 => (l.log10() - t.log10()).abs(),
+                        _ => (l - t).abs(),
+                    };
+                    e.insert(name.clone(), err);
+                }
+            }
+            if let Some(tv) = truth_v0 {
+                e.insert(
+                    "v0_m_s".into(),
+                    (DVec3::from_array(velocity.initial_velocity) - DVec3::from_array(tv)).length(),
+                );
+            }
+            e
+        });
+        let mut stage_wall_s = BTreeMap::new();
+        for (name, u) in ctx.upstream.iter() {
+            stage_wall_s.insert(name.clone(), u.manifest.wall_s);
+        }
+        stage_wall_s.insert(ctx.name.to_string(), started.elapsed().as_secs_f64());
+        let result = Evaluation {
+            test_psnr_mean: mean(&mut scores.iter().filter(test).map(|s| s.psnr)),
+            test_ssim_mean: mean(&mut scores.iter().filter(test).map(|s| s.ssim)),
+            test_psnr_first_frame: per_frame.first().copied(),
+            test_psnr_last_frame: per_frame.last().copied(),
+            train_psnr_mean: mean(&mut scores.iter().filter(train).map(|s| s.psnr)),
+            train_ssim_mean: mean(&mut scores.iter().filter(train).map(|s| s.ssim)),
+            test_psnr_mask_mean: mean(&mut scores.iter().filter(test).map(|s| s.psnr_mask)),
+            test_mask_iou_mean: mean(&mut scores.iter().filter(test).map(|s| s.mask_iou)),
+            test_psnr_per_frame: per_frame,
+            learned: learned_map,
+            initial_velocity: velocity.initial_velocity,
+            ground_truth: truth,
+            ground_truth_v0: truth_v0,
+            errors,
+            chamfer_last_frame_m: chamfer.last().copied().filter(|c| c.is_finite()),
+            chamfer_per_frame_m: chamfer,
+            stage_wall_s,
+            frames: last,
+            test_views: ctx.scene.test_views.clone(),
+        };
+        for (metric, value) in [
+            ("test_psnr_mean", result.test_psnr_mean),
+            ("test_ssim_mean", result.test_ssim_mean),
+            ("train_psnr_mean", result.train_psnr_mean),
+            ("chamfer_last_frame_m", result.chamfer_last_frame_m),
+        ] {
+            if let Some(value) = value {
+                ctx.metric(MetricRow {
+                    epoch: None,
+                    view: None,
+                    frame: None,
+                    metric: metric.into(),
+                    value,
+                });
+            }
+        }
+        if let Some(errors) = &result.errors {
+            for (name, value) in errors {
+                ctx.metric(MetricRow {
+                    epoch: None,
+                    view: None,
+                    frame: None,
+                    metric: format!("error_{name}"),
+                    value: *value,
+                });
+            }
+        }
+        ctx.progress.log(&summary(&result));
+        crate::io::write_json(&out_dir.join("evaluation.json"), &result)
+            .map_err(StageError::failed)?;
+        Ok(())
+    }
+}
+
+/// The grid cells the `material` stage simulated with (its resolved parameters).
+fn object_cells(ctx: &StageContext<'_>) -> Result<f64, StageError> {
+    let m = ctx.upstream("material")?;
+    m.manifest.key_material.params["cells"]
+        .as_f64()
+        .ok_or_else(|| {
+            StageError::failed(FitError::Invalid(
+                "the `material` entry has no `cells` parameter".into(),
+            ))
+        })
+}
+
+fn train_error(e: RolloutError) -> StageError {
+    match e {
+        RolloutError::Interrupted => StageError::Interrupted,
+        e => StageError::failed(FitError::Training {
+            epoch: 0,
+            message: format!("re-simulating the learned scene: {e}"),
+        }),
+    }
+}
+
+/// `gt/params.json`'s parameters under this project's names, and its `v0`.
+fn ground_truth(
+    scene: &SceneSpec,
+    family: &str,
+) -> (Option<BTreeMap<String, f64>>, Option<[f64; 3]>) {
+    let Some(gt) = crate::physics::fit::ground_truth(scene) else {
+        return (None, None);
+    };
+    let mut t = BTreeMap::new();
+    let pick = |key: &str| gt[key].as_f64();
+    for (name, key) in [
+        ("E", "E"),
+        ("nu", "nu"),
+        ("yield_stress", "yield_stress"),
+        ("bulk_modulus", "kappa"),
+        ("friction_angle", "friction_angle_deg"),
+    ] {
+        if let Some(v) = pick(key) {
+            t.insert(name.to_string(), v);
+        }
+    }
+    let visc = if family == "newtonian" {
+        pick("mu")
+    } else {
+        pick("plastic_viscosity_eta").or_else(|| pick("viscosity_eta"))
+    };
+    if let Some(v) = visc {
+        t.insert("viscosity".to_string(), v);
+    }
+    let v0 = serde_json::from_value::<[f64; 3]>(gt["v0"].clone()).ok();
+    (Some(t), v0)
+}
+
+fn summary(e: &Evaluation) -> String {
+    let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.2}"));
+    let mut s = format!(
+        "test PSNR {} dB (frame 0 {}, last {}), SSIM {}; train PSNR {} dB",
+        f(e.test_psnr_mean),
+        f(e.test_psnr_first_frame),
+        f(e.test_psnr_last_frame),
+        e.test_ssim_mean
+            .map_or("-".to_string(), |v| format!("{v:.4}")),
+        f(e.train_psnr_mean)
+    );
+    if let Some(c) = e.chamfer_last_frame_m {
+        s.push_str(&format!("; Chamfer at the last frame {:.2} mm", c * 1e3));
+    }
+    if let Some(err) = &e.errors {
+        let parts: Vec<String> = err.iter().map(|(k, v)| format!("{k} {v:.3}")).collect();
+        s.push_str(&format!("; errors: {}", parts.join(", ")));
+    }
+    s
+}
+
+/// Renders and scores every view of a frame as the rollout reaches it.
+struct Scorer<'a> {
+    object: &'a Object,
+    fluid: bool,
+    targets: &'a [Target],
+    background: [f32; 3],
+    written: &'a [u16],
+    out_dir: &'a Path,
+    renders: bool,
+    scores: Vec<ViewScore>,
+    chamfer: Vec<f64>,
+    gt_dir: &'a Path,
+    /// Per written view, the GIF frames (captured | ours | error).
+    gif: BTreeMap<u16, Vec<Rgb8>>,
+}
+
+impl FrameLoss for Scorer<'_> {
+    fn frame(
+        &mut self,
+        frame: u16,
+        state: &State,
+        _grad: Option<&mut StateGrad>,
+    ) -> Result<f64, RolloutError> {
+        let fail = |message: String| RolloutError::Loss { frame, message };
+        let pose = Pose::<f32>::of(state, self.object.rendered(), self.fluid);
+        let g = pose.apply(crate::scene::splat::render_gaussians(
+            &self.object.gaussians,
+        ));
+        let opts = pipe_render::RenderOptions {
+            background: [0.0; 3],
+            ..Default::default()
+        };
+        for t in self.targets.iter().filter(|t| t.row.frame == frame) {
+            let view = t.row.view;
+            let (w, h) = t.size();
+            let out = pipe_render::render(&g, &t.camera, &opts)
+                .map_err(|e| fail(format!("rendering view {view}: {e}")))?;
+            let backdrop = t.backdrop(self.background);
+            let ours = composite(&out, &backdrop);
+            let truth = t.over(&backdrop);
+            let a =
+                pipe_loss::Image::new("render", &ours, w, h).map_err(|e| fail(e.to_string()))?;
+            let b =
+                pipe_loss::Image::new("target", &truth, w, h).map_err(|e| fail(e.to_string()))?;
+            let psnr = pipe_loss::psnr(a, b).map_err(|e| fail(e.to_string()))?;
+            let ssim = pipe_loss::ssim(a, b).map_err(|e| fail(e.to_string()))?;
+            let (mut se, mut n_in, mut inter, mut union) = (0.0f64, 0usize, 0usize, 0usize);
+            for (i, m) in t.mask.iter().enumerate() {
+                let (inside, drawn) = (*m > 0.5, out.alpha[i] > 0.5);
+                inter += usize::from(inside && drawn);
+                union += usize::from(inside || drawn);
+                if inside {
+                    n_in += 1;
+                    for c in 0..3 {
+                        let d = f64::from(ours[3 * i + c] - truth[3 * i + c]);
+                        se += d * d;
+                    }
+                }
+            }
+            let psnr_mask = if n_in == 0 {
+                f64::NAN
+            } else {
+                let mse = se / (3 * n_in) as f64;
+                if mse == 0.0 {
+                    f64::INFINITY
+                } else {
+                    -10.0 * mse.log10()
+                }
+            };
+            let mask_iou = if union == 0 {
+                1.0
+            } else {
+                inter as f64 / union as f64
+            };
+            let test = t.row.role == Role::Test;
+            self.scores.push(ViewScore {
+                view,
+                frame,
+                test,
+                psnr,
+                ssim,
+                psnr_mask,
+                mask_iou,
+            });
+            if self.renders && self.written.contains(&view) {
+                let rgb = |px: &[f32]| Rgb8 {
+                    width: w as u32,
+                    height: h as u32,
+                    data: px
+                        .iter()
+                        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+                        .collect(),
+                };
+                let (ours8, truth8) = (rgb(&ours), rgb(&truth));
+                let name = format!("v{view}_f{frame}");
+                let err = |e: &dyn std::fmt::Display| fail(e.to_string());
+                image::write_rgb8(&self.out_dir.join(format!("renders/{name}.png")), &ours8)
+                    .map_err(|e| err(&e))?;
+                crate::io::exr::write_channel(
+                    &self.out_dir.join(format!("renders/alpha/{name}.exr")),
+                    "A",
+                    w as u32,
+                    h as u32,
+                    &out.alpha,
+                )
+                .map_err(|e| err(&e))?;
+                crate::io::exr::write_depth(
+                    &self.out_dir.join(format!("renders/depth/{name}.exr")),
+                    w as u32,
+                    h as u32,
+                    &out.depth,
+                )
+                .map_err(|e| err(&e))?;
+                self.gif.entry(view).or_default().push(image::compare_strip(
+                    &truth8.data,
+                    &ours8.data,
+                    w,
+                    h,
+                ));
+            }
+        }
+        // The ground truth's particles of this frame, when the scene has them.
+        let gt = self.gt_dir.join(format!("{frame}.ply"));
+        let chamfer = match crate::io::ply::read_points(&gt) {
+            Ok(cloud) => {
+                let truth: Vec<DVec3> = cloud
+                    .positions
+                    .iter()
+                    .map(|p| DVec3::new(p[0].into(), p[1].into(), p[2].into()))
+                    .collect();
+                crate::scene::neighbors::mean_chamfer(&state.x, &truth).unwrap_or(f64::NAN)
+            }
+            Err(_) => f64::NAN,
+        };
+        if gt.is_file() || !self.chamfer.is_empty() {
+            self.chamfer.push(chamfer);
+        }
+        Ok(0.0)
+    }
+}
+
+/// An animated GIF of `frames` (all the same size), `ms` per frame, looping.
+fn write_gif(path: &Path, frames: &[Rgb8], ms: u32) -> Result<(), image::ImageError> {
+    use ::image::codecs::gif::{GifEncoder, Repeat};
+    use ::image::{Delay, Frame, RgbaImage};
+    let io = |e: &dyn std::fmt::Display| image::ImageError::Encode {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    };
+    let file = std::fs::File::create(path).map_err(|e| io(&e))?;
+    let mut enc = GifEncoder::new_with_speed(std::io::BufWriter::new(file), 10);
+    enc.set_repeat(Repeat::Infinite).map_err(|e| io(&e))?;
+    for f in frames {
+        let rgba: Vec<u8> = f
+            .data
+            .chunks_exact(3)
+            .flat_map(|c| [c[0], c[1], c[2], 255])
+            .collect();
+        let img = RgbaImage::from_raw(f.width, f.height, rgba)
+            .ok_or_else(|| io(&"frames of different sizes"))?;
+        enc.encode_frame(Frame::from_parts(
+            img,
+            0,
+            0,
+            Delay::from_numer_denom_ms(ms, 1),
+        ))
+        .map_err(|e| io(&e))?;
+    }
+    Ok(())
+}
