@@ -273,7 +273,7 @@ impl TypedStage for Evaluate {
         for (v, w) in s0.v.iter_mut().zip(&v0) {
             *v = *w;
         }
-        eval.frame(0, &s0, None).map_err(|e| train_error(e))?;
+        eval.frame(0, &s0, None).map_err(train_error)?;
         Rollout {
             object: &object,
             material: &values,
