@@ -15,6 +15,10 @@ pub trait Progress: Send + Sync {
     fn message(&self, msg: &str);
     /// A line for the log.
     fn log(&self, line: &str);
+    /// A warning: printed as `warning: LINE` even with `--quiet` (which only drops progress).
+    fn warn(&self, line: &str) {
+        self.log(&format!("warning: {line}"));
+    }
 }
 
 /// How the run talks to the user.
@@ -194,5 +198,9 @@ impl Progress for Reporter {
         if self.mode != Mode::Quiet {
             self.println(&format!("    {line}"));
         }
+    }
+
+    fn warn(&self, line: &str) {
+        self.println(&format!("    warning: {line}"));
     }
 }
