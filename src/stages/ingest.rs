@@ -310,7 +310,7 @@ fn gt_mask_path(root: &Path, img: &PacnerfImage) -> PathBuf {
 }
 
 /// Masks whose agreement with the other cameras (`pipe_matte::agreement`) is below this are
-/// reported. Ground-truth masks of the sample scenes score 0.79–0.97 (mean 0.90–0.94).
+/// reported. Ground-truth masks of the sample scenes score 0.79 and more (mean 0.90–0.94).
 pub const AGREEMENT_WARNING: f64 = 0.7;
 
 fn metric(view: Option<u16>, frame: Option<u16>, name: &str, value: f64) -> MetricRow {
