@@ -1,16 +1,28 @@
-//! `datasets-tools`: reshape scenes in the PAC-NeRF layout.
+//! `datasets-tools`: make and reshape scenes in the PAC-NeRF layout.
 //!
 //! `datasets-tools downscale SRC DST --factor 2 [--frames 0,4,8] [--views 0,1,2]` writes a
 //! smaller copy of a scene: every image and plate box-filtered by `factor`, the intrinsics
 //! scaled to match (fx/f, fy/f, cx/f, cy/f), ground-truth masks box-filtered into soft alpha,
 //! `gt/params.json` copied. The repo's test and demo scene was made this way.
+//!
+//! `datasets-tools composite SRC DST --texture shadow-greys|dark-grey --frames 0,5,9,13`
+//! writes a matting test scene: SRC's cameras, plates and object silhouettes, the object
+//! re-textured adversarially and its shadow cast on the plates ([`composite`]).
+
+mod composite;
+mod resample;
+mod shadow;
+mod texture;
 
 use std::fs;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
+use glam::DVec3;
 use serde_json::Value;
+
+use resample::{box_filter_luma, box_filter_rgb};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -40,6 +52,29 @@ enum Command {
         #[arg(long, value_delimiter = ',')]
         views: Vec<i64>,
     },
+    /// Write a matting test scene: SRC's cameras, plates and silhouettes (gt/masks), the
+    /// object re-textured and its shadow cast along --light (needs gt/particles/<frame>.ply).
+    Composite {
+        /// Source scene folder (holds all_data.json, gt/masks and gt/particles).
+        src: PathBuf,
+        /// Destination folder (created).
+        dst: PathBuf,
+        /// The object's texture.
+        #[arg(long, value_enum)]
+        texture: texture::Texture,
+        /// Frames to make (comma-separated).
+        #[arg(long, value_delimiter = ',', required = true)]
+        frames: Vec<i32>,
+        /// Keep only these cameras (comma-separated; all when absent).
+        #[arg(long, value_delimiter = ',')]
+        views: Vec<u16>,
+        /// The light's direction of travel x,y,z (y < 0).
+        #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = [0.3, -1.0, 0.2], allow_negative_numbers = true)]
+        light: Vec<f64>,
+        /// Integer box-filter factor of the output.
+        #[arg(long, default_value_t = 2)]
+        factor: u32,
+    },
 }
 
 fn main() -> Result<()> {
@@ -51,9 +86,27 @@ fn main() -> Result<()> {
             frames,
             views,
         } => downscale(&src, &dst, factor, &frames, &views),
+        Command::Composite {
+            src,
+            dst,
+            texture,
+            frames,
+            views,
+            light,
+            factor,
+        } => composite::composite(&composite::CompositeArgs {
+            src: &src,
+            dst: &dst,
+            texture,
+            light: DVec3::new(light[0], light[1], light[2]),
+            frames: &frames,
+            views: &views,
+            factor,
+        }),
     }
 }
 
+/// `(camera, frame)` of a `./data/r_<camera>_<frame>.png` name.
 fn parse_name(name: &str) -> Option<(i64, i64)> {
     let stem = name
         .rsplit('/')
@@ -95,11 +148,7 @@ fn downscale(src: &Path, dst: &Path, factor: u32, frames: &[i64], views: &[i64])
         small
             .save(dst.join(rel))
             .with_context(|| format!("writing {}", dst.join(rel).display()))?;
-        let k = e["intrinsic"].as_array_mut().context("intrinsic")?;
-        for (r, c) in [(0, 0), (0, 2), (1, 1), (1, 2)] {
-            let v = k[r][c].as_f64().context("intrinsic value")?;
-            k[r][c] = serde_json::json!(v / f64::from(factor));
-        }
+        e = scale_intrinsics(e, factor)?;
         if frame >= 0 {
             let m = src.join("gt/masks").join(format!("m_{view}_{frame}.png"));
             if m.exists() {
@@ -127,33 +176,12 @@ fn downscale(src: &Path, dst: &Path, factor: u32, frames: &[i64], views: &[i64])
     Ok(())
 }
 
-fn box_filter_rgb(img: &image::RgbImage, f: u32) -> image::RgbImage {
-    let (w, h) = (img.width() / f, img.height() / f);
-    image::RgbImage::from_fn(w, h, |x, y| {
-        let mut acc = [0u32; 3];
-        for dy in 0..f {
-            for dx in 0..f {
-                let p = img.get_pixel(x * f + dx, y * f + dy);
-                for c in 0..3 {
-                    acc[c] += u32::from(p[c]);
-                }
-            }
-        }
-        let n = f * f;
-        image::Rgb(acc.map(|a| ((a + n / 2) / n) as u8))
-    })
-}
-
-fn box_filter_luma(img: &image::GrayImage, f: u32) -> image::GrayImage {
-    let (w, h) = (img.width() / f, img.height() / f);
-    image::GrayImage::from_fn(w, h, |x, y| {
-        let mut acc = 0u32;
-        for dy in 0..f {
-            for dx in 0..f {
-                acc += u32::from(img.get_pixel(x * f + dx, y * f + dy)[0]);
-            }
-        }
-        let n = f * f;
-        image::Luma([((acc + n / 2) / n) as u8])
-    })
+/// An `all_data.json` entry with its intrinsics divided by `factor` (fx, fy, cx, cy).
+fn scale_intrinsics(mut e: Value, factor: u32) -> Result<Value> {
+    let k = e["intrinsic"].as_array_mut().context("intrinsic")?;
+    for (r, c) in [(0, 0), (0, 2), (1, 1), (1, 2)] {
+        let v = k[r][c].as_f64().context("intrinsic value")?;
+        k[r][c] = serde_json::json!(v / f64::from(factor));
+    }
+    Ok(e)
 }

@@ -19,6 +19,10 @@ pub trait Progress: Send + Sync {
     fn notice(&self, line: &str) {
         self.log(line);
     }
+    /// A warning: printed as `warning: LINE` even with `--quiet` (which only drops progress).
+    fn warn(&self, line: &str) {
+        self.notice(&format!("warning: {line}"));
+    }
 }
 
 /// How the run talks to the user.

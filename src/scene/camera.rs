@@ -29,7 +29,24 @@ pub struct Camera {
 impl Camera {
     /// From a `frames` row.
     pub fn from_row(r: &FrameRow) -> Self {
-        let m = &r.world_from_camera;
+        Self::new(
+            &r.world_from_camera,
+            [r.fx, r.fy, r.cx, r.cy],
+            r.width,
+            r.height,
+        )
+    }
+
+    /// From a 3×4 row-major `world_from_camera` (OpenCV axes, metres), `[fx, fy, cx, cy]`
+    /// (pixels) and the image size.
+    pub fn new(
+        world_from_camera: &[f64; 12],
+        intrinsics: [f64; 4],
+        width: u32,
+        height: u32,
+    ) -> Self {
+        let m = world_from_camera;
+        let [fx, fy, cx, cy] = intrinsics;
         Self {
             world_from_camera_rot: DMat3::from_cols(
                 DVec3::new(m[0], m[4], m[8]),
@@ -37,37 +54,42 @@ impl Camera {
                 DVec3::new(m[2], m[6], m[10]),
             ),
             centre_world: DVec3::new(m[3], m[7], m[11]),
-            fx: r.fx,
-            fy: r.fy,
-            cx: r.cx,
-            cy: r.cy,
-            width: r.width,
-            height: r.height,
+            fx,
+            fy,
+            cx,
+            cy,
+            width,
+            height,
         }
     }
 
-    /// A world point in camera space: `camera_from_world · p = Rᵀ (p − c)`.
-    pub fn point_camera(&self, p_world: DVec3) -> DVec3 {
-        self.world_from_camera_rot.transpose() * (p_world - self.centre_world)
+    /// The same camera as the matting and carving kernels take it (one projection code).
+    pub fn pinhole(&self) -> pipe_matte::Pinhole {
+        pipe_matte::Pinhole {
+            world_from_camera_rot: self.world_from_camera_rot,
+            centre_world: self.centre_world,
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+            width: self.width,
+            height: self.height,
+        }
     }
 
     /// Pixel coordinates (continuous) and depth (m) of a world point; `None` behind the camera.
     pub fn project(&self, p_world: DVec3) -> Option<(f64, f64, f64)> {
-        let q = self.point_camera(p_world);
-        (q.z > 1e-9).then(|| {
-            (
-                self.fx * q.x / q.z + self.cx,
-                self.fy * q.y / q.z + self.cy,
-                q.z,
-            )
-        })
+        self.pinhole().project(p_world)
     }
 
     /// The pixel (column, row) a world point falls in, if inside the image and in front.
     pub fn pixel(&self, p_world: DVec3) -> Option<(u32, u32)> {
-        let (u, v, _) = self.project(p_world)?;
-        (u >= 0.0 && v >= 0.0 && u < f64::from(self.width) && v < f64::from(self.height))
-            .then_some((u as u32, v as u32))
+        self.pinhole().pixel(p_world)
+    }
+
+    /// Where the ray through image point `(u, v)` (pixels) meets the ground plane y = 0.
+    pub fn ground_point(&self, u: f64, v: f64) -> Option<DVec3> {
+        self.pinhole().ground_point(u, v)
     }
 }
 

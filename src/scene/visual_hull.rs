@@ -1,14 +1,9 @@
 //! Space carving: the object's visual hull from its masks in calibrated views.
 //!
-//! A voxel is kept when its centre projects into the object mask of every view, up to
-//! `max_misses` views (robustness to matte errors). A voxel outside a view's frustum counts as a
-//! miss: the captures this is for keep the whole object in every view.
-//! Carving runs twice: first in the box spanned by the camera centres, then in the bounding box
-//! of the first result grown by two coarse voxels, so the final voxels are fine whatever the
-//! scene's scale.
+//! The carving itself is `pipe_matte::hull` (the matting's multi-view check carves the same
+//! way); this module takes the scene's cameras.
 
-use glam::DVec3;
-use rayon::prelude::*;
+pub use pipe_matte::Hull;
 
 use super::camera::Camera;
 
@@ -21,112 +16,23 @@ pub struct MaskedView<'a> {
     pub mask: &'a [u8],
 }
 
-/// Carving result: the centres of kept voxels and the voxel edge length.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Hull {
-    /// Voxel centres, metres.
-    pub centres: Vec<DVec3>,
-    /// Voxel edge, metres.
-    pub voxel: f64,
-    /// Lower corner of the box carved in the final pass, metres.
-    pub box_min: DVec3,
-    /// Upper corner, metres.
-    pub box_max: DVec3,
-}
-
-impl Hull {
-    /// Volume of the kept voxels, m³.
-    pub fn volume(&self) -> f64 {
-        self.centres.len() as f64 * self.voxel.powi(3)
-    }
-
-    /// Axis-aligned bounds of the kept voxels (grown by half a voxel).
-    pub fn bounds(&self) -> Option<(DVec3, DVec3)> {
-        let first = *self.centres.first()?;
-        let (lo, hi) = self
-            .centres
-            .iter()
-            .fold((first, first), |(lo, hi), c| (lo.min(*c), hi.max(*c)));
-        let h = DVec3::splat(self.voxel / 2.0);
-        Some((lo - h, hi + h))
-    }
-}
-
-fn keep(p: DVec3, views: &[MaskedView<'_>], max_misses: usize) -> bool {
-    let mut misses = 0usize;
-    for v in views {
-        let inside = v
-            .camera
-            .pixel(p)
-            .is_some_and(|(u, w)| v.mask[(w * v.camera.width + u) as usize] >= 128);
-        if !inside {
-            misses += 1;
-            if misses > max_misses {
-                return false;
-            }
-        }
-    }
-    views.len() >= 2
-}
-
-fn carve_box(
-    lo: DVec3,
-    hi: DVec3,
-    resolution: usize,
-    views: &[MaskedView<'_>],
-    max_misses: usize,
-) -> Hull {
-    let extent = hi - lo;
-    let voxel = extent.max_element() / resolution as f64;
-    let dims = (extent / voxel).ceil().as_uvec3().max(glam::UVec3::ONE);
-    let (nx, ny, nz) = (dims.x as usize, dims.y as usize, dims.z as usize);
-    // Fixed chunks (one z-slab each) in a fixed order: deterministic whatever the thread count.
-    let centres: Vec<DVec3> = (0..nz)
-        .into_par_iter()
-        .flat_map_iter(|k| {
-            let mut out = Vec::new();
-            for j in 0..ny {
-                for i in 0..nx {
-                    let c = lo + (DVec3::new(i as f64, j as f64, k as f64) + 0.5) * voxel;
-                    if keep(c, views, max_misses) {
-                        out.push(c);
-                    }
-                }
-            }
-            out.into_iter()
+/// Carve the visual hull at `resolution` voxels along the longest box edge; a voxel is kept
+/// when its centre projects into the masks of all views but at most `max_misses`.
+pub fn carve(views: &[MaskedView<'_>], resolution: usize, max_misses: usize) -> Hull {
+    let views: Vec<pipe_matte::MaskedView<'_>> = views
+        .iter()
+        .map(|v| pipe_matte::MaskedView {
+            camera: v.camera.pinhole(),
+            mask: v.mask,
         })
         .collect();
-    Hull {
-        centres,
-        voxel,
-        box_min: lo,
-        box_max: lo + dims.as_dvec3() * voxel,
-    }
-}
-
-/// Carve the visual hull at `resolution` voxels along the longest box edge.
-pub fn carve(views: &[MaskedView<'_>], resolution: usize, max_misses: usize) -> Hull {
-    let resolution = resolution.max(4);
-    let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
-    for v in views {
-        lo = lo.min(v.camera.centre_world);
-        hi = hi.max(v.camera.centre_world);
-    }
-    let pad = (hi - lo).max_element().max(1e-3) * 0.1;
-    let coarse = carve_box(lo - pad, hi + pad, resolution, views, max_misses);
-    match coarse.bounds() {
-        None => coarse,
-        Some((clo, chi)) => {
-            let grow = DVec3::splat(2.0 * coarse.voxel);
-            carve_box(clo - grow, chi + grow, resolution, views, max_misses)
-        }
-    }
+    pipe_matte::carve(&views, resolution, max_misses)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use glam::DMat3;
+    use glam::{DMat3, DVec3};
 
     /// A camera at `centre` looking at the origin, OpenCV axes, 64×64, 60° field of view.
     fn look_at(centre: DVec3) -> Camera {

@@ -120,7 +120,9 @@ pub struct Init;
 impl TypedStage for Init {
     type Params = InitParams;
     const KIND: &'static str = "init";
-    const VERSION: u32 = 2;
+    // 3: the carving box holds what the cameras look at (it spanned only their centres, which
+    // cut objects below every camera: frames after the first landed outside it).
+    const VERSION: u32 = 3;
     const DESCRIPTION: &'static str = "Initial Gaussians of the object: visual hull of one frame's masks, sampled and coloured from the images";
     const UPSTREAM: &'static [&'static str] = &["ingest"];
 

@@ -2,9 +2,12 @@
 //! torus-elastic scene down-scaled 2× by `datasets-tools downscale`, 11 cameras × 14 frames,
 //! 100×100, with its ground-truth masks). Cameras, frames, times, intrinsics and a camera centre
 //! are checked against values read independently from the JSON; the masks against the ground
-//! truth (mean IoU ≥ 0.95, min ≥ 0.90: the torus casts a dark shadow on a textured floor, which
-//! a plain colour difference mistakes for object). Then each kind of broken capture must give
-//! an error naming the file and value.
+//! truth (mean IoU ≥ 0.965, min ≥ 0.935, measured 0.9680 and 0.9406; the single-view matte
+//! before made 0.9615 and 0.9170: the torus casts a dark shadow on a textured floor, which a
+//! plain colour difference mistakes for object). The composite scenes of
+//! `tests/fixtures/composite-*` (made by `datasets-tools composite`) hold the matting's hard
+//! cases; a torn mask is reported in a warning naming its camera and frame. Then each kind of
+//! broken capture must give an error naming the file and value.
 
 use crate::support::{BuiltinRun, fixture_scene};
 use std::path::{Path, PathBuf};
@@ -125,8 +128,8 @@ fn fixture_scene_cameras_frames_and_masks() {
     }
     let mean = ious.iter().sum::<f64>() / ious.len() as f64;
     let min = ious.iter().cloned().fold(1.0, f64::min);
-    assert!(mean >= 0.95, "mean IoU {mean:.4}");
-    assert!(min >= 0.90, "min IoU {min:.4}");
+    assert!(mean >= 0.965, "mean IoU {mean:.4}");
+    assert!(min >= 0.935, "min IoU {min:.4}");
     // The stage reports the same numbers in its metrics.
     let m: Metrics = table::read(&entry.join("metrics.arrow")).unwrap();
     let reported = m
@@ -136,6 +139,129 @@ fn fixture_scene_cameras_frames_and_masks() {
         .unwrap()
         .value;
     assert!((reported - mean).abs() < 1e-9, "{reported} vs {mean}");
+    // Every image has its agreement with the other cameras, in [0, 1].
+    let agreements: Vec<f64> = m
+        .rows
+        .iter()
+        .filter(|r| r.metric == "mask_agreement")
+        .map(|r| r.value)
+        .collect();
+    assert_eq!(agreements.len(), frames.rows.len());
+    assert!(
+        agreements.iter().all(|a| (0.0..=1.0).contains(a)),
+        "{agreements:?}"
+    );
+}
+
+/// `(mean, min)` of the `mask_iou` metrics `ingest` reports for a composite fixture.
+fn composite_ious(name: &str) -> (f64, f64, Vec<f64>) {
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(name);
+    let (_dir, entry) = ingest(&scene, "[]");
+    let m: Metrics = table::read(&entry.unwrap().join("metrics.arrow")).unwrap();
+    let get = |k: &str| m.rows.iter().find(|r| r.metric == k).unwrap().value;
+    let per_image: Vec<f64> = m
+        .rows
+        .iter()
+        .filter(|r| r.metric == "mask_iou")
+        .map(|r| r.value)
+        .collect();
+    assert_eq!(per_image.len(), 44);
+    (get("mask_iou_mean"), get("mask_iou_min"), per_image)
+}
+
+/// A dark grey torus (its levels those of the floor's grout) over the tiled floor, with its
+/// shadow: measured mean 0.9716, min 0.9565 (single-view matte: 0.9706, 0.8811).
+#[test]
+fn dark_object_over_grout_lines_meets_the_iou_target() {
+    let (mean, min, all) = composite_ious("composite-dark-grey");
+    assert!(
+        mean >= 0.95 && min >= 0.92,
+        "mean {mean:.4}, min {min:.4}: {all:?}"
+    );
+}
+
+/// A torus textured with the floor's colour dimmed to shadow tones (every object pixel over the
+/// floor passes the per-pixel shadow test): measured mean 0.8548, min 0.6969 (single-view
+/// matte: 0.0102, 0.0). Below the target (0.95, 0.92): frame 0, high above its shadow,
+/// reaches 0.94; frames 5–13, close to or resting on its shadow, 0.77–0.87.
+#[test]
+fn shadow_toned_object_is_mostly_found() {
+    let (mean, min, all) = composite_ious("composite-shadow-greys");
+    assert!(
+        mean >= 0.85 && min >= 0.69,
+        "mean {mean:.4}, min {min:.4}: {all:?}"
+    );
+}
+
+/// A torn mask (ground-truth masks, one of them half erased) is named in a warning, also with
+/// `--quiet`, and its agreement is the frame's lowest.
+#[test]
+fn torn_mask_is_reported_by_camera_and_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let json: Vec<serde_json::Value> =
+        serde_json::from_slice(&std::fs::read(fixture().join("all_data.json")).unwrap()).unwrap();
+    let keep: Vec<serde_json::Value> = json
+        .into_iter()
+        .filter(|e| {
+            let n = e["file_path"].as_str().unwrap();
+            n.ends_with("_-1.png") || n.ends_with("_0.png")
+        })
+        .collect();
+    std::fs::create_dir_all(dir.path().join("data")).unwrap();
+    std::fs::create_dir_all(dir.path().join("gt/masks")).unwrap();
+    for e in &keep {
+        let rel = e["file_path"].as_str().unwrap().trim_start_matches("./");
+        std::fs::copy(fixture().join(rel), dir.path().join(rel)).unwrap();
+    }
+    for v in 0..11 {
+        let rel = format!("gt/masks/m_{v}_0.png");
+        let mut g = image::open(fixture().join(&rel)).unwrap().into_luma8();
+        if v == 3 {
+            // Erase the lower half of the object.
+            let rows: Vec<u32> = g
+                .enumerate_pixels()
+                .filter(|p| p.2[0] >= 128)
+                .map(|p| p.1)
+                .collect();
+            let middle = (rows.iter().min().unwrap() + rows.iter().max().unwrap()) / 2;
+            for (_, y, p) in g.enumerate_pixels_mut() {
+                if y > middle {
+                    p.0[0] = 0;
+                }
+            }
+        }
+        g.save(dir.path().join(&rel)).unwrap();
+    }
+    std::fs::write(
+        dir.path().join("all_data.json"),
+        serde_json::to_string(&keep).unwrap(),
+    )
+    .unwrap();
+    let run = BuiltinRun::new(dir.path(), "[]", "standard", "  ingest: {matte: gt}\n");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_pipe"))
+        .arg("--workdir")
+        .arg(run.dir.path())
+        .args(["--quiet", "run"])
+        .arg(&run.file)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("warning:") && stderr.contains("camera 3 frame 0"),
+        "{stderr}"
+    );
+    let m: Metrics = table::read(&run.entry("ingest").join("metrics.arrow")).unwrap();
+    let agreement: Vec<(u16, f64)> = m
+        .rows
+        .iter()
+        .filter(|r| r.metric == "mask_agreement")
+        .map(|r| (r.view.unwrap(), r.value))
+        .collect();
+    let lowest = agreement.iter().min_by(|a, b| a.1.total_cmp(&b.1)).unwrap();
+    assert_eq!(lowest.0, 3, "{agreement:?}");
 }
 
 /// A writable copy of the fixture with only cameras 0 and 1, frames 0 and 1.

@@ -87,10 +87,11 @@ fn run(scene: &Path, n: usize, params: &MatteParams) -> Result<(), String> {
         let (p, w, h) = load(&plate_path, 3)?;
         let (p, pw, ph) = downscale(&p, w, h, 3, n);
         let plate = RgbImageView::new(&p, pw, ph).map_err(|e| e.to_string())?;
-        for frame in 0.. {
+        // Frames need not be contiguous (the composite fixtures keep a few).
+        for frame in 0..1000 {
             let img_path = data.join(format!("r_{cam}_{frame}.png"));
             if !img_path.exists() {
-                break;
+                continue;
             }
             let (i, w, h) = load(&img_path, 3)?;
             let (i, iw, ih) = downscale(&i, w, h, 3, n);

@@ -39,4 +39,20 @@ pub enum MatteError {
         /// Declared height in pixels.
         height: usize,
     },
+    /// A camera's image size differs from its image's.
+    #[error(
+        "view {view}: the camera is {camera_width}x{camera_height} but its image is {image_width}x{image_height}"
+    )]
+    CameraSize {
+        /// Index of the view.
+        view: usize,
+        /// Camera width in pixels.
+        camera_width: usize,
+        /// Camera height in pixels.
+        camera_height: usize,
+        /// Image width in pixels.
+        image_width: usize,
+        /// Image height in pixels.
+        image_height: usize,
+    },
 }

@@ -16,18 +16,30 @@
 //!    most `max_hole_area` pixels (`components.rs`);
 //! 4. peel outline pixels whose change is at most `boundary_change_threshold`: mostly
 //!    uncovered anti-aliased edge pixels (`morphology.rs`).
+//!
+//! [`matte_frame`] mattes all cameras of one frame together (`multiview.rs`): the geometry of
+//! the capture tells an object from its shadow on the ground, and from background of its own
+//! colour, where one view's colours cannot; it also scores how far each mask agrees with the
+//! other views ([`agreement`]). [`carve`] is the visual-hull carving it shares with the
+//! pipeline's `init` stage.
 
+mod camera;
 mod components;
 mod error;
+pub mod hull;
 mod mask;
-mod morphology;
+pub(crate) mod morphology;
+mod multiview;
 mod params;
 mod score;
 mod view;
 
+pub use camera::Pinhole;
 pub use error::MatteError;
+pub use hull::{Hull, MaskedView, carve};
 pub use mask::{Mask, iou};
-pub use params::MatteParams;
+pub use multiview::{FrameMatte, View, agreement, matte_frame};
+pub use params::{MatteParams, MultiViewParams};
 pub use view::RgbImageView;
 
 /// Mattes the object out of `image` using the background `plate` of the same camera.
@@ -50,20 +62,32 @@ pub fn matte(
             plate_height: plate.height(),
         });
     }
-    let (mut bits, strength) = score::classify(image, plate, params);
+    let evidence = score::classify(image, plate, params);
+    Ok(clean_up(
+        evidence.object_bits(),
+        &evidence.strength,
+        w,
+        h,
+        params,
+    ))
+}
+
+/// Steps 2–4 of the pipeline: majority vote, small components and holes, boundary peel.
+pub(crate) fn clean_up(
+    mut bits: Vec<bool>,
+    strength: &[u8],
+    w: usize,
+    h: usize,
+    params: &MatteParams,
+) -> Mask {
     if params.majority_filter {
         bits = morphology::majority3(&bits, w, h);
     }
     components::remove_small_components(&mut bits, w, h, params.min_component_area);
     components::fill_small_holes(&mut bits, w, h, params.max_hole_area);
     if params.boundary_change_threshold > params.change_threshold {
-        bits = morphology::peel_weak_boundary(
-            &bits,
-            &strength,
-            w,
-            h,
-            params.boundary_change_threshold,
-        );
+        bits =
+            morphology::peel_weak_boundary(&bits, strength, w, h, params.boundary_change_threshold);
     }
-    Ok(Mask::from_bits(w, h, &bits))
+    Mask::from_bits(w, h, &bits)
 }

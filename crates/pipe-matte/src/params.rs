@@ -45,3 +45,45 @@ impl Default for MatteParams {
         }
     }
 }
+
+/// Thresholds of the multi-view steps of [`crate::matte_frame`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct MultiViewParams {
+    /// Per-view thresholds.
+    pub view: MatteParams,
+    /// A shadow-like pixel is tested against the other views only if its change
+    /// `max_c |I_c - B_c|` exceeds this (8-bit units; default 3× the change threshold): fainter
+    /// ones (penumbrae, whose edge one view may place a pixel off) stay shadow.
+    pub ground_min_change: u8,
+    /// A shadow-like pixel is object when at least this many other views see the ground point
+    /// behind it unchanged (lit): a shadow on the ground darkens it from every side.
+    pub ground_lit_views: usize,
+    /// Rounds of the photo-consistency test on the pixels left ambiguous (each round's new
+    /// object pixels support the next's); 0 skips it.
+    pub photo_rounds: usize,
+    /// An ambiguous pixel is object when this many other views see a definite object pixel
+    /// of its colour where its ray meets the hull of their changed pixels.
+    pub support_views: usize,
+    /// Colour tolerance of that test, 8-bit levels per channel.
+    pub photo_tolerance: u8,
+    /// Voxels along the longest edge of the box the hulls (of the changed pixels, and for the
+    /// agreement) are carved in.
+    pub hull_grid: usize,
+    /// Views a voxel of the agreement hull (of the other views than the one scored) may miss.
+    pub hull_max_misses: usize,
+}
+
+impl Default for MultiViewParams {
+    fn default() -> Self {
+        Self {
+            view: MatteParams::default(),
+            ground_min_change: 36,
+            ground_lit_views: 1,
+            photo_rounds: 1,
+            support_views: 2,
+            photo_tolerance: 8,
+            hull_grid: 64,
+            hull_max_misses: 0,
+        }
+    }
+}

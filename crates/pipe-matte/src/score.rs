@@ -7,7 +7,7 @@
 //!   `max_c l_c - min_c l_c < shadow_max_spread` (all channels scaled by the same factor,
 //!   i.e. the plate's hue is kept) and `mean_c l_c < shadow_max_log_gain` (the pixel got
 //!   darker, not brighter). The offset `k` keeps the ratio of near-black pixels finite.
-//! * **object** = changed and not shadow-like.
+//! * **object** = changed and not shadow-like ([`Class`]).
 
 use rayon::prelude::*;
 
@@ -35,10 +35,22 @@ fn change(i: &[u8], b: &[u8]) -> u8 {
         .unwrap_or(0)
 }
 
-/// Decides one pixel; `lut` is [`log_table`] of `params.ratio_offset`.
-fn is_object(i: &[u8], b: &[u8], lut: &[f32; 256], params: &MatteParams) -> bool {
+/// What a pixel's change against the plate looks like.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Class {
+    /// `max_c |I_c - B_c| <= change_threshold`.
+    Unchanged,
+    /// Changed, but every channel dimmed by a similar factor: a shadow, or an object of
+    /// the plate's hue.
+    ShadowLike,
+    /// Changed otherwise.
+    Object,
+}
+
+/// Classifies one pixel; `lut` is [`log_table`] of `params.ratio_offset`.
+fn classify_pixel(i: &[u8], b: &[u8], lut: &[f32; 256], params: &MatteParams) -> Class {
     if change(i, b) <= params.change_threshold {
-        return false;
+        return Class::Unchanged;
     }
     let mut lo = f32::INFINITY;
     let mut hi = f32::NEG_INFINITY;
@@ -49,41 +61,59 @@ fn is_object(i: &[u8], b: &[u8], lut: &[f32; 256], params: &MatteParams) -> bool
         hi = hi.max(l);
         sum += l;
     }
-    let shadow = hi - lo < params.shadow_max_spread && sum / 3.0 < params.shadow_max_log_gain;
-    !shadow
+    if hi - lo < params.shadow_max_spread && sum / 3.0 < params.shadow_max_log_gain {
+        Class::ShadowLike
+    } else {
+        Class::Object
+    }
 }
 
-/// Raw per-pixel object decisions and change magnitudes (row-major, before any
-/// clean-up).
+/// Per-pixel evidence of one view (row-major, before any clean-up).
+#[derive(Debug, Clone)]
+pub(crate) struct Evidence {
+    /// Each pixel's class.
+    pub class: Vec<Class>,
+    /// Change magnitude `max_c |I_c - B_c|`.
+    pub strength: Vec<u8>,
+}
+
+impl Evidence {
+    /// The object decision of the single-view test: changed and not shadow-like.
+    pub fn object_bits(&self) -> Vec<bool> {
+        self.class.iter().map(|c| *c == Class::Object).collect()
+    }
+}
+
+/// Classifies every pixel of `image` against `plate`.
 ///
-/// `image` and `plate` must have the same dimensions (checked by [`crate::matte`]).
+/// `image` and `plate` must have the same dimensions (checked by the callers).
 pub(crate) fn classify(
     image: &RgbImageView<'_>,
     plate: &RgbImageView<'_>,
     params: &MatteParams,
-) -> (Vec<bool>, Vec<u8>) {
+) -> Evidence {
     let (w, h) = (image.width(), image.height());
-    let mut object = vec![false; w * h];
+    let mut class = vec![Class::Unchanged; w * h];
     let mut strength = vec![0u8; w * h];
     if w == 0 || h == 0 {
-        return (object, strength);
+        return Evidence { class, strength };
     }
     let lut = log_table(params.ratio_offset);
     let (img, pl) = (image.data(), plate.data());
-    object
+    class
         .par_chunks_mut(w)
         .zip(strength.par_chunks_mut(w))
         .enumerate()
-        .for_each(|(y, (obj_row, str_row))| {
+        .for_each(|(y, (cls_row, str_row))| {
             let base = y * w * 3;
-            for (x, (o, s)) in obj_row.iter_mut().zip(str_row).enumerate() {
+            for (x, (o, s)) in cls_row.iter_mut().zip(str_row).enumerate() {
                 let p = base + 3 * x;
                 let (i, b) = (&img[p..p + 3], &pl[p..p + 3]);
                 *s = change(i, b);
-                *o = is_object(i, b, &lut, params);
+                *o = classify_pixel(i, b, &lut, params);
             }
         });
-    (object, strength)
+    Evidence { class, strength }
 }
 
 #[cfg(test)]
@@ -92,7 +122,7 @@ mod tests {
 
     fn one(i: [u8; 3], b: [u8; 3]) -> bool {
         let p = MatteParams::default();
-        is_object(&i, &b, &log_table(p.ratio_offset), &p)
+        classify_pixel(&i, &b, &log_table(p.ratio_offset), &p) == Class::Object
     }
 
     #[test]
@@ -126,6 +156,9 @@ mod tests {
         };
         let lut = log_table(p.ratio_offset);
         assert!(lut.iter().all(|v| v.is_finite()));
-        assert!(!is_object(&[0, 0, 0], &[0, 0, 0], &lut, &p));
+        assert_eq!(
+            classify_pixel(&[0, 0, 0], &[0, 0, 0], &lut, &p),
+            Class::Unchanged
+        );
     }
 }

@@ -1,0 +1,284 @@
+//! Space carving: the object's visual hull from its masks in calibrated views, and the hull's
+//! reprojection into a view.
+//!
+//! A voxel is kept when its centre projects into the object mask of every view, up to
+//! `max_misses` views (robustness to matte errors). A voxel outside a view's frustum counts as a
+//! miss: the captures this is for keep the whole object in every view.
+//! Carving runs twice: first in the box spanned by the camera centres and their mirror images
+//! through the point they look at, then in the bounding box of the first result grown by two
+//! coarse voxels, so the final voxels are fine whatever the scene's scale.
+
+use glam::{DVec3, UVec3};
+use rayon::prelude::*;
+
+use crate::camera::Pinhole;
+
+/// One view: its camera and binary mask (`width·height` bytes, ≥ 128 = object).
+#[derive(Debug, Clone, Copy)]
+pub struct MaskedView<'a> {
+    /// The camera.
+    pub camera: Pinhole,
+    /// Row-major mask.
+    pub mask: &'a [u8],
+}
+
+/// Carving result: the kept voxels of the final box.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Hull {
+    /// Voxel centres, metres (z-slab, then row, then column order).
+    pub centres: Vec<DVec3>,
+    /// Voxel edge, metres.
+    pub voxel: f64,
+    /// Lower corner of the box carved in the final pass, metres.
+    pub box_min: DVec3,
+    /// Upper corner, metres.
+    pub box_max: DVec3,
+    /// Voxels along x, y, z of the final box.
+    pub dims: UVec3,
+    /// Whether each voxel of the final box is kept (x fastest, then y, then z).
+    pub occupied: Vec<bool>,
+}
+
+impl Hull {
+    /// The hull of the `occupied` voxels (x fastest, then y, then z) of the box at `box_min`
+    /// with `dims` voxels of edge `voxel`.
+    pub fn from_occupancy(box_min: DVec3, voxel: f64, dims: UVec3, occupied: Vec<bool>) -> Self {
+        let (nx, ny) = (dims.x as usize, dims.y as usize);
+        let centres = occupied
+            .iter()
+            .enumerate()
+            .filter(|(_, k)| **k)
+            .map(|(n, _)| {
+                let (i, j, k) = (n % nx, (n / nx) % ny, n / (nx * ny));
+                box_min + (DVec3::new(i as f64, j as f64, k as f64) + 0.5) * voxel
+            })
+            .collect();
+        Hull {
+            centres,
+            voxel,
+            box_min,
+            box_max: box_min + dims.as_dvec3() * voxel,
+            dims,
+            occupied,
+        }
+    }
+
+    /// Volume of the kept voxels, m³.
+    pub fn volume(&self) -> f64 {
+        self.centres.len() as f64 * self.voxel.powi(3)
+    }
+
+    /// Axis-aligned bounds of the kept voxels (grown by half a voxel).
+    pub fn bounds(&self) -> Option<(DVec3, DVec3)> {
+        let first = *self.centres.first()?;
+        let (lo, hi) = self
+            .centres
+            .iter()
+            .fold((first, first), |(lo, hi), c| (lo.min(*c), hi.max(*c)));
+        let h = DVec3::splat(self.voxel / 2.0);
+        Some((lo - h, hi + h))
+    }
+
+    /// Whether the voxel holding world point `p` is kept (`false` outside the box).
+    pub fn contains(&self, p: DVec3) -> bool {
+        self.index(p).is_some_and(|i| self.occupied[i])
+    }
+
+    /// Index of the voxel holding `p` (x fastest), if inside the box.
+    fn index(&self, p: DVec3) -> Option<usize> {
+        let f = (p - self.box_min) / self.voxel;
+        if f.min_element() < 0.0 {
+            return None;
+        }
+        let i = f.as_uvec3();
+        if i.x >= self.dims.x || i.y >= self.dims.y || i.z >= self.dims.z {
+            return None;
+        }
+        let (nx, ny) = (self.dims.x as usize, self.dims.y as usize);
+        Some((i.z as usize * ny + i.y as usize) * nx + i.x as usize)
+    }
+
+    /// Where the ray through image point `(u, v)` of `camera` first enters a kept voxel
+    /// (sampled every half voxel), if it does.
+    pub fn front(&self, camera: &Pinhole, (u, v): (f64, f64)) -> Option<DVec3> {
+        let o = camera.centre_world;
+        let d = camera.ray(u, v);
+        let (t0, t1) = slab(o, d, self.box_min, self.box_max)?;
+        let step = self.voxel / 2.0;
+        let mut t = t0 + step / 2.0;
+        while t < t1 {
+            let p = o + d * t;
+            if self.contains(p) {
+                return Some(p);
+            }
+            t += step;
+        }
+        None
+    }
+
+    /// The hull's silhouette in `camera`: per pixel (row-major), whether the centre of a
+    /// kept voxel projects into it, the same test carving applies (a voxel is about a pixel
+    /// across at the default resolutions, so the projected centres leave no gaps inside).
+    pub fn reproject(&self, camera: &Pinhole) -> Vec<bool> {
+        let w = camera.width as usize;
+        let mut out = vec![false; w * camera.height as usize];
+        for c in &self.centres {
+            if let Some((u, v)) = camera.pixel(*c) {
+                out[v as usize * w + u as usize] = true;
+            }
+        }
+        out
+    }
+}
+
+/// Entry and exit ray parameters of the box `[lo, hi]` (t ≥ 0), if the ray meets it.
+fn slab(o: DVec3, d: DVec3, lo: DVec3, hi: DVec3) -> Option<(f64, f64)> {
+    let inv = d.recip();
+    let a = (lo - o) * inv;
+    let b = (hi - o) * inv;
+    let t0 = a.min(b).max_element().max(0.0);
+    let t1 = a.max(b).min_element();
+    (t0 < t1 && t0.is_finite() && t1.is_finite()).then_some((t0, t1))
+}
+
+/// Bit `i` set iff view `i` does not see `p` inside its object mask (outside its frustum
+/// counts as not seen).
+fn missed_by(p: DVec3, views: &[MaskedView<'_>]) -> u64 {
+    let mut bits = 0u64;
+    for (i, v) in views.iter().enumerate() {
+        let inside = v
+            .camera
+            .pixel(p)
+            .is_some_and(|(u, w)| v.mask[(w * v.camera.width + u) as usize] >= 128);
+        if !inside {
+            bits |= 1 << i;
+        }
+    }
+    bits
+}
+
+/// Which views miss each voxel of a box: carving with any rule, from one pass over the views.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Votes {
+    /// Voxel edge, metres.
+    pub voxel: f64,
+    /// Lower corner of the box, metres.
+    pub box_min: DVec3,
+    /// Voxels along x, y, z.
+    pub dims: UVec3,
+    /// Per voxel (x fastest, then y, then z), bit `i` set iff view `i` misses it.
+    pub missed_by: Vec<u64>,
+    /// Number of views.
+    pub views: usize,
+}
+
+impl Votes {
+    fn in_box(lo: DVec3, hi: DVec3, resolution: usize, views: &[MaskedView<'_>]) -> Self {
+        let extent = hi - lo;
+        let voxel = extent.max_element() / resolution as f64;
+        let dims = (extent / voxel).ceil().as_uvec3().max(UVec3::ONE);
+        let (nx, ny, nz) = (dims.x as usize, dims.y as usize, dims.z as usize);
+        // Fixed chunks (one z-slab each) in a fixed order: deterministic whatever the thread
+        // count.
+        let missed_by: Vec<u64> = (0..nz)
+            .into_par_iter()
+            .flat_map_iter(|k| {
+                let mut out = Vec::with_capacity(nx * ny);
+                for j in 0..ny {
+                    for i in 0..nx {
+                        let c = lo + (DVec3::new(i as f64, j as f64, k as f64) + 0.5) * voxel;
+                        out.push(missed_by(c, views));
+                    }
+                }
+                out.into_iter()
+            })
+            .collect();
+        Self {
+            voxel,
+            box_min: lo,
+            dims,
+            missed_by,
+            views: views.len(),
+        }
+    }
+
+    /// The hull of the voxels for which `keep(missed_by)` holds (never any with fewer than
+    /// two views).
+    pub fn hull(&self, keep: impl Fn(u64) -> bool) -> Hull {
+        let occupied: Vec<bool> = self
+            .missed_by
+            .iter()
+            .map(|m| self.views >= 2 && keep(*m))
+            .collect();
+        Hull::from_occupancy(self.box_min, self.voxel, self.dims, occupied)
+    }
+
+    /// The hull of voxels missed by at most `max_misses` views.
+    pub fn within(&self, max_misses: usize) -> Hull {
+        self.hull(|m| m.count_ones() as usize <= max_misses)
+    }
+
+    /// The hull of voxels missed by at most `max_misses` views other than `view` (the hull of
+    /// all the other views).
+    pub fn without(&self, view: usize, max_misses: usize) -> Hull {
+        let others = !(1u64.checked_shl(view as u32).unwrap_or(0));
+        self.hull(|m| (m & others).count_ones() as usize <= max_misses)
+    }
+}
+
+/// The box the first pass carves: the camera centres and their mirror images through the point
+/// nearest to all optical axes (least squares: `Σ (I − d dᵀ) x = Σ (I − d dᵀ) c`), so it holds
+/// what the cameras look at even when they all stand on one side of it (a dome over the
+/// ground). Parallel axes (no such point) fall back to the centres' box.
+fn coarse_box(views: &[MaskedView<'_>]) -> (DVec3, DVec3) {
+    let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+    let mut a = glam::DMat3::ZERO;
+    let mut b = DVec3::ZERO;
+    for v in views {
+        let c = v.camera.centre_world;
+        lo = lo.min(c);
+        hi = hi.max(c);
+        let d = v.camera.world_from_camera_rot.z_axis.normalize();
+        let m = glam::DMat3::IDENTITY - glam::DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+        a += m;
+        b += m * c;
+    }
+    if a.determinant().abs() > 1e-6 * (views.len() as f64).powi(3) {
+        let target = a.inverse() * b;
+        for v in views {
+            let mirror = 2.0 * target - v.camera.centre_world;
+            lo = lo.min(mirror);
+            hi = hi.max(mirror);
+        }
+    }
+    (lo, hi)
+}
+
+/// The most views [`carve`] and [`votes`] take (one bit each per voxel).
+pub const MAX_VIEWS: usize = 64;
+
+/// Carve the visual hull at `resolution` voxels along the longest box edge.
+///
+/// Views past the [`MAX_VIEWS`]th are ignored.
+pub fn carve(views: &[MaskedView<'_>], resolution: usize, max_misses: usize) -> Hull {
+    votes(views, resolution, max_misses).within(max_misses)
+}
+
+/// The votes of every view on the voxels of the box the hull with `max_misses` fits in (see
+/// the module doc), at `resolution` voxels along its longest edge.
+///
+/// Views past the [`MAX_VIEWS`]th are ignored.
+pub fn votes(views: &[MaskedView<'_>], resolution: usize, max_misses: usize) -> Votes {
+    let views = &views[..views.len().min(MAX_VIEWS)];
+    let resolution = resolution.max(4);
+    let (lo, hi) = coarse_box(views);
+    let pad = (hi - lo).max_element().max(1e-3) * 0.1;
+    let coarse = Votes::in_box(lo - pad, hi + pad, resolution, views).within(max_misses);
+    match coarse.bounds() {
+        None => Votes::in_box(lo - pad, hi + pad, resolution, views),
+        Some((clo, chi)) => {
+            let grow = DVec3::splat(2.0 * coarse.voxel);
+            Votes::in_box(clo - grow, chi + grow, resolution, views)
+        }
+    }
+}
