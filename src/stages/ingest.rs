@@ -285,9 +285,7 @@ fn plate_rel(view: u16) -> String {
 }
 
 fn gt_mask_path(root: &Path, img: &PacnerfImage) -> PathBuf {
-    root.join("gt")
-        .join("masks")
-        .join(format!("m_{}_{}.png", img.view, img.frame))
+    pacnerf::gt_mask_path(root, img.view, img.frame)
 }
 
 /// Matte, composite and write one image; returns its row and the IoU against ground truth.

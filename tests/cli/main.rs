@@ -3,6 +3,7 @@
 mod formats;
 mod ingest;
 mod init;
+mod render;
 mod runner;
 mod simulate;
 mod spec_errors;
