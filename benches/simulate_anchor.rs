@@ -1,4 +1,5 @@
-//! CLI-level MPM benchmark at the anchor workloads (`/work/shared/anchors/README.md`): the
+//! CLI-level MPM benchmark at the anchor workloads (`../shared/anchors/README.md`, relative to
+//! the repository): the
 //! `pipe simulate` command on the anchors' cube (domain [0,1]³, dx = 1/G, dt = 1e-4 s, E = 1e3
 //! Pa, ν = 0.2, ρ = 1 kg/m³, gravity, 8 particles per cell in a cube placed as the anchors
 //! place it, uniform random positions in random order, at rest), for fixed corotated
@@ -17,8 +18,9 @@
 //! * `PIPE_BENCH_CASES=fcr_20k,nh_100k` runs some cases; `PIPE_BENCH_THREADS=2` some thread
 //!   counts; `PIPE_BENCH_PRECISION=f64` runs `pipe simulate --precision f64` (default `f32`,
 //!   the anchors' precision).
-//! * `ANCHORS_PY=/tmp/anchors-venv/bin/python` (with `ANCHORS_DIR`, default
-//!   `/work/shared/anchors`) also runs the anchors' Taichi script on the same workload right
+//! * `ANCHORS_PY=$ANCHORS_VENV/bin/python` (a Python with taichi and warp-lang, set up as the
+//!   anchors' README says; with `ANCHORS_DIR`, default `../shared/anchors` relative to the
+//!   repository) also runs the anchors' Taichi script on the same workload right
 //!   after each of ours (same thread count), and Warp's after our 1-thread run, through the
 //!   anchors' `bench_runner.py`, printing their JSON lines: the side-by-side comparison in one
 //!   run.
@@ -103,8 +105,8 @@ fn main() {
         .map(|t| t.split(',').filter_map(|v| v.trim().parse().ok()).collect())
         .unwrap_or_else(|| vec![1, 2]);
     let anchors_py = std::env::var("ANCHORS_PY").ok();
-    let anchors_dir =
-        std::env::var("ANCHORS_DIR").unwrap_or_else(|_| "/work/shared/anchors".into());
+    let anchors_dir = std::env::var("ANCHORS_DIR")
+        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/anchors").into());
     for case in &CASES {
         if cases
             .as_deref()

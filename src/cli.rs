@@ -103,12 +103,17 @@ enum Command {
         /// Also write the expected depth (metres) as an OpenEXR `Z` channel.
         #[arg(long)]
         depth: Option<PathBuf>,
-        /// Output width in pixels (intrinsics scaled); default: the camera's image size.
-        #[arg(long, requires = "height")]
+        /// Output width in pixels, the intrinsics scaled from the camera's image size (read
+        /// from its image file); default: that size.
+        #[arg(long, requires = "height", conflicts_with = "size")]
         width: Option<u32>,
-        /// Output height in pixels.
-        #[arg(long, requires = "width")]
+        /// Output height in pixels (with `--width`).
+        #[arg(long, requires = "width", conflicts_with = "size")]
         height: Option<u32>,
+        /// Output size `WxH` in pixels with the intrinsics as the camera file gives them (the
+        /// size they belong to); needed when the camera's image file is absent.
+        #[arg(long, value_name = "WxH", value_parser = parse_size)]
+        size: Option<(u32, u32)>,
         /// Background RGB in [0, 1], e.g. `1,1,1`.
         #[arg(long, value_delimiter = ',', default_values_t = [1.0f32, 1.0, 1.0])]
         background: Vec<f32>,
@@ -158,6 +163,20 @@ enum ExportFormat {
 fn parse_preset(s: &str) -> Result<Preset, String> {
     Preset::parse(s)
         .ok_or_else(|| format!("unknown preset `{s}`; expected draft, standard or paper"))
+}
+
+/// `WxH` (or `W×H`) in pixels, both at least 1.
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let bad = || format!("expected WIDTHxHEIGHT in pixels like `160x120`, found `{s}`");
+    let (w, h) = s.split_once(['x', 'X', '×']).ok_or_else(bad)?;
+    let (w, h): (u32, u32) = (
+        w.trim().parse().map_err(|_| bad())?,
+        h.trim().parse().map_err(|_| bad())?,
+    );
+    if w == 0 || h == 0 {
+        return Err(format!("`{s}`: width and height must be at least 1"));
+    }
+    Ok((w, h))
 }
 
 static INTERRUPTED: AtomicBool = AtomicBool::new(false);
@@ -348,14 +367,21 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
             depth,
             width,
             height,
+            size,
             background,
         } => {
+            use crate::preview::OutputSize;
+            let size = match (size, width.zip(*height)) {
+                (Some((w, h)), _) => OutputSize::Exact(*w, *h),
+                (None, Some((w, h))) => OutputSize::Rescaled(w, h),
+                (None, None) => OutputSize::Native,
+            };
             let req = crate::preview::PreviewRequest {
                 ply: ply.clone(),
                 cameras: cameras.clone(),
                 view: *view,
                 frame: *frame,
-                size: width.zip(*height),
+                size,
                 background: <[f32; 3]>::try_from(background.as_slice()).map_err(|_| {
                     RunError::Usage(format!(
                         "--background: expected three comma-separated values in [0, 1] like `1,1,1`, found {} value(s)",

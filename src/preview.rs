@@ -1,5 +1,6 @@
 //! `pipe render`: render any standard 3DGS PLY (ours or another tool's) from a camera of a
-//! PAC-NeRF camera JSON, for previews and tests.
+//! PAC-NeRF camera JSON, for previews and tests. Only the rendered camera's entries are read:
+//! plates play no part in rendering over a given background.
 
 use std::path::{Path, PathBuf};
 
@@ -13,16 +14,31 @@ use crate::scene::splat;
 pub struct PreviewRequest {
     /// A 3DGS PLY file.
     pub ply: PathBuf,
-    /// `all_data.json` (PAC-NeRF layout).
+    /// `all_data.json` (PAC-NeRF layout). Only the entries of `view` are used: no background
+    /// plate is needed.
     pub cameras: PathBuf,
     /// Camera index.
     pub view: u16,
     /// Frame whose entry gives the camera (cameras are static in PAC-NeRF captures).
     pub frame: i32,
-    /// Output size; the intrinsics are scaled to it. Default: the image's own size.
-    pub size: Option<(u32, u32)>,
+    /// Output size.
+    pub size: OutputSize,
     /// Background RGB in [0, 1].
     pub background: [f32; 3],
+}
+
+/// The size of a rendered preview, pixels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum OutputSize {
+    /// The camera's image size, read from its image file.
+    #[default]
+    Native,
+    /// `(width, height)` with the intrinsics scaled from the image size by `width / w₀` and
+    /// `height / h₀` (the same view at another resolution; needs the image file).
+    Rescaled(u32, u32),
+    /// `(width, height)` with the intrinsics as the camera file gives them (the image size the
+    /// intrinsics belong to, when no image file says it).
+    Exact(u32, u32),
 }
 
 /// A rendered preview.
@@ -53,42 +69,46 @@ pub enum PreviewError {
     Render(#[from] pipe_render::RenderError),
 }
 
-/// Image size of a camera entry: from its image file when present, else (2·cx, 2·cy).
-fn native_size(img: &pacnerf::PacnerfImage) -> (u32, u32) {
-    if let Ok((w, h)) = image::image_dimensions(&img.path) {
-        return (w, h);
+/// The image size of camera `view`: that of the first of its entries' image files that
+/// exists (the entry of `frame` first); `Ok(None)` when none exists.
+fn native_size(
+    scene: &pacnerf::PacnerfScene,
+    view: u16,
+    entry: &pacnerf::PacnerfImage,
+) -> Result<Option<(u32, u32)>, PreviewError> {
+    let same_camera = scene
+        .images
+        .iter()
+        .chain(scene.plates.values())
+        .filter(|i| i.view == view);
+    for img in std::iter::once(entry).chain(same_camera) {
+        if img.path.is_file() {
+            return image::image_dimensions(&img.path).map(Some).map_err(|e| {
+                PreviewError::Invalid(format!(
+                    "{}: cannot read the image size of camera {view}: {e}",
+                    img.path.display()
+                ))
+            });
+        }
     }
-    let [_, _, cx, cy] = img.intrinsics;
-    (
-        (2.0 * cx).round().max(1.0) as u32,
-        (2.0 * cy).round().max(1.0) as u32,
-    )
+    Ok(None)
 }
 
-/// The scene camera of `view` / `frame` in a PAC-NeRF JSON, optionally resized.
+/// The scene camera of `view` / `frame` in a PAC-NeRF JSON, at the requested size. Only the
+/// entries of `view` are used; background plates are not required.
 pub fn camera(
     path: &Path,
     view: u16,
     frame: i32,
-    size: Option<(u32, u32)>,
+    size: OutputSize,
 ) -> Result<Camera, PreviewError> {
     let scene = pacnerf::read_cameras(path)?;
-    let entry = scene
-        .images
-        .iter()
-        .chain(scene.plates.values())
+    let all = || scene.images.iter().chain(scene.plates.values());
+    let entry = all()
         .find(|i| i.view == view && i.frame == frame)
-        .or_else(|| {
-            scene
-                .images
-                .iter()
-                .chain(scene.plates.values())
-                .find(|i| i.view == view)
-        })
+        .or_else(|| all().find(|i| i.view == view))
         .ok_or_else(|| {
-            let mut views: Vec<u16> = scene.images.iter().map(|i| i.view).collect();
-            views.sort_unstable();
-            views.dedup();
+            let views: std::collections::BTreeSet<u16> = all().map(|i| i.view).collect();
             PreviewError::Invalid(format!(
                 "{}: there is no camera {view} (cameras: {})",
                 path.display(),
@@ -99,21 +119,41 @@ pub fn camera(
                     .join(", ")
             ))
         })?;
-    let (w0, h0) = native_size(entry);
-    let (w, h) = size.unwrap_or((w0, h0));
+    let unknown = |what: &str| {
+        PreviewError::Invalid(format!(
+            "{}: the image size of camera {view} is unknown ({} does not exist); {what}",
+            path.display(),
+            entry.path.display()
+        ))
+    };
+    let [fx, fy, cx, cy] = entry.intrinsics;
+    let ((w, h), (sx, sy)) = match size {
+        OutputSize::Native => {
+            let wh = native_size(&scene, view, entry)?
+                .ok_or_else(|| unknown("give the size its intrinsics belong to with --size WxH"))?;
+            (wh, (1.0, 1.0))
+        }
+        OutputSize::Rescaled(w, h) => {
+            let (w0, h0) = native_size(&scene, view, entry)?.ok_or_else(|| {
+                unknown("--width/--height rescale from that size; use --size WxH to set the size without rescaling the intrinsics")
+            })?;
+            (
+                (w, h),
+                (f64::from(w) / f64::from(w0), f64::from(h) / f64::from(h0)),
+            )
+        }
+        OutputSize::Exact(w, h) => ((w, h), (1.0, 1.0)),
+    };
     if w == 0 || h == 0 || w > 16384 || h > 16384 {
         return Err(PreviewError::Invalid(format!(
             "image size {w}×{h} is outside 1..=16384"
         )));
     }
-    let (sx, sy) = (f64::from(w) / f64::from(w0), f64::from(h) / f64::from(h0));
-    let [fx, fy, cx, cy] = entry.intrinsics;
-    let m = &entry.world_from_camera;
     let row = crate::scene::frames::FrameRow {
         view,
         frame: 0,
         time_s: entry.time_s,
-        world_from_camera: *m,
+        world_from_camera: entry.world_from_camera,
         fx: fx * sx,
         fy: fy * sy,
         cx: cx * sx,

@@ -98,9 +98,10 @@ pub fn read_scene(root: &Path) -> Result<PacnerfScene, PacnerfError> {
     read_json(&root.join("all_data.json"))
 }
 
-/// Read and check a PAC-NeRF camera JSON at `path` (image paths resolve against its folder).
+/// Read and check a PAC-NeRF camera JSON at `path` (image paths resolve against its folder),
+/// requiring a background plate for every camera (for the stages that composite over them).
 pub fn read_json(path: &Path) -> Result<PacnerfScene, PacnerfError> {
-    let mut scene = read_cameras(path)?;
+    let scene = read_cameras(path)?;
     let views: std::collections::BTreeSet<u16> = scene.images.iter().map(|i| i.view).collect();
     for v in &views {
         if !scene.plates.contains_key(v) {
@@ -112,11 +113,11 @@ pub fn read_json(path: &Path) -> Result<PacnerfScene, PacnerfError> {
             });
         }
     }
-    scene.images.sort_by_key(|i| (i.view, i.frame));
     Ok(scene)
 }
 
-/// Read the entries of a PAC-NeRF camera JSON without requiring plates (e.g. to render).
+/// Read the entries of a PAC-NeRF camera JSON, every entry checked, without requiring plates
+/// (e.g. to render); images sorted by (view, frame).
 pub fn read_cameras(path: &Path) -> Result<PacnerfScene, PacnerfError> {
     let root = path.parent().unwrap_or(Path::new("."));
     let path = path.to_path_buf();
@@ -188,22 +189,19 @@ pub fn read_cameras(path: &Path) -> Result<PacnerfScene, PacnerfError> {
         }
     }
     images.sort_by_key(|i| (i.view, i.frame));
-    let views: std::collections::BTreeSet<u16> = images.iter().map(|i| i.view).collect();
-    for v in &views {
-        if !plates.contains_key(v) {
-            return Err(PacnerfError::Layout {
-                path,
-                message: format!(
-                    "camera {v} has no background plate (./data/r_{v}_-1.png is not listed)"
-                ),
-            });
-        }
-    }
     Ok(PacnerfScene {
         root: root.to_path_buf(),
         images,
         plates,
     })
+}
+
+/// Where a scene at `root` keeps the ground-truth object mask of camera `view`, frame
+/// `frame`, when it has one: `gt/masks/m_<cam>_<frame>.png` (0/255, ≥ 128 = object).
+pub fn gt_mask_path(root: &Path, view: u16, frame: i32) -> PathBuf {
+    root.join("gt")
+        .join("masks")
+        .join(format!("m_{view}_{frame}.png"))
 }
 
 /// `data/r_<cam>_<frame>.png` → (cam, frame).

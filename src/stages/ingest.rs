@@ -304,9 +304,7 @@ fn plate_rel(view: u16) -> String {
 }
 
 fn gt_mask_path(root: &Path, img: &PacnerfImage) -> PathBuf {
-    root.join("gt")
-        .join("masks")
-        .join(format!("m_{}_{}.png", img.view, img.frame))
+    pacnerf::gt_mask_path(root, img.view, img.frame)
 }
 
 /// Masks whose agreement with the other cameras (`pipe_matte::agreement`) is below this are

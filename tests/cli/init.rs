@@ -4,15 +4,81 @@
 //! much larger than the object, and the rendered silhouette must overlap the ground-truth mask.
 
 use crate::support::{BuiltinRun, fixture_scene};
+use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
+use glam::{DVec3, IVec3};
 use pipe::io::ply;
+use pipe::scene::camera::Camera;
+use pipe::scene::frames::{Frames, Role};
 use pipe::scene::gaussians::Gaussians;
 use pipe::scene::metrics::Metrics;
 use pipe::scene::table;
+use pipe::scene::visual_hull::{self, Hull, MaskedView};
 
 fn fixture() -> PathBuf {
     fixture_scene()
+}
+
+/// The hull `init` carves from an ingest entry: frame 0's training views and their masks, at
+/// `grid` voxels with `max_misses` views allowed to disagree (the same function and inputs).
+fn carve_as_init(ingest: &Path, grid: usize, max_misses: usize) -> Hull {
+    let frames: Frames = table::read(&ingest.join("frames.arrow")).unwrap();
+    let rows: Vec<_> = frames
+        .rows
+        .iter()
+        .filter(|r| r.frame == 0 && r.role == Role::Train)
+        .collect();
+    let cameras: Vec<Camera> = rows.iter().map(|r| Camera::from_row(r)).collect();
+    let masks: Vec<Vec<u8>> = rows
+        .iter()
+        .map(|r| {
+            pipe::io::image::read_gray8(&ingest.join(&r.mask))
+                .unwrap()
+                .2
+        })
+        .collect();
+    let views: Vec<MaskedView> = cameras
+        .iter()
+        .zip(&masks)
+        .map(|(camera, mask)| MaskedView { camera, mask })
+        .collect();
+    visual_hull::carve(&views, grid, max_misses)
+}
+
+/// A hull's voxels as integer indices from its box corner, and the index of the voxel holding
+/// a point.
+struct Voxels {
+    set: HashSet<IVec3>,
+    origin: DVec3,
+    size: f64,
+}
+
+impl Voxels {
+    fn of(hull: &Hull) -> Self {
+        let mut v = Voxels {
+            set: HashSet::new(),
+            origin: hull.box_min,
+            size: hull.voxel,
+        };
+        v.set = hull.centres.iter().map(|c| v.index(*c)).collect();
+        v
+    }
+    fn index(&self, p: DVec3) -> IVec3 {
+        ((p - self.origin) / self.size).floor().as_ivec3()
+    }
+    /// Whether `p` lies in a kept voxel.
+    fn contains(&self, p: DVec3) -> bool {
+        self.set.contains(&self.index(p))
+    }
+    /// Whether `p` lies within `k` voxels of a kept voxel (in it or in the cube of
+    /// `(2k + 1)³` voxels around its own).
+    fn near(&self, p: DVec3, k: i32) -> bool {
+        let i = self.index(p);
+        (-k..=k).any(|a| {
+            (-k..=k).any(|b| (-k..=k).any(|c| self.set.contains(&(i + IVec3::new(a, b, c)))))
+        })
+    }
 }
 
 #[test]
@@ -40,7 +106,54 @@ fn visual_hull_init_contains_the_object_and_renders_its_silhouette() {
             hi[a] = hi[a].max(p[a]);
         }
     }
-    // Every Gaussian lies within the object's box grown by 3 cm (the hull over-estimates).
+    // The hull contains the object. Carved again from the ingest masks with init's function
+    // and parameters (draft: 96 voxels; max_misses 1), it is init's hull: same voxel count and
+    // volume as its metrics, and every Gaussian lies in one of its voxels. PAC-NeRF's particles
+    // of frame 0 lie in it but for a surface layer: a voxel (6.2 mm) whose centre projects just
+    // outside two masks is carved although part of it is object, and the matte's own errors
+    // (IoU ~0.95) carve more. Tolerance: ≥ 97 % of the particles in the hull (measured
+    // 97.07 %), every one within two voxels of it (measured: all but 10 within one).
+    let hull = carve_as_init(&run.entry("ingest"), 96, 1);
+    let voxels = Voxels::of(&hull);
+    let m: Metrics = table::read(&entry.join("metrics.arrow")).unwrap();
+    let metric = |name: &str| m.rows.iter().find(|r| r.metric == name).unwrap().value;
+    assert_eq!(metric("hull_voxels"), hull.centres.len() as f64);
+    assert_eq!(metric("hull_volume_m3"), hull.volume());
+    let in_hull = |points: &[[f32; 3]]| {
+        points
+            .iter()
+            .filter(|p| voxels.contains(DVec3::from_array(p.map(f64::from))))
+            .count() as f64
+            / points.len() as f64
+    };
+    assert!(in_hull(&g.position) >= 0.999, "{}", in_hull(&g.position));
+    let inside = in_hull(&gt.positions);
+    let near = |k| {
+        gt.positions
+            .iter()
+            .filter(|p| voxels.near(DVec3::from_array(p.map(f64::from)), k))
+            .count()
+    };
+    let (near1, near2) = (near(1), near(2));
+    println!(
+        "ground-truth particles in the hull: {:.2} %; within one voxel ({:.1} mm) {near1}, within two {near2}, of {}",
+        100.0 * inside,
+        hull.voxel * 1e3,
+        gt.positions.len()
+    );
+    assert!(
+        inside >= 0.97,
+        "{:.2} % of the particles in the hull",
+        100.0 * inside
+    );
+    assert_eq!(
+        near2,
+        gt.positions.len(),
+        "every particle within two voxels"
+    );
+
+    // The hull is not much larger than the object: every Gaussian lies within the object's
+    // box grown by 3 cm.
     for x in &g.position {
         for a in 0..3 {
             assert!(
@@ -49,13 +162,7 @@ fn visual_hull_init_contains_the_object_and_renders_its_silhouette() {
             );
         }
     }
-    let m: Metrics = table::read(&entry.join("metrics.arrow")).unwrap();
-    let volume = m
-        .rows
-        .iter()
-        .find(|r| r.metric == "hull_volume_m3")
-        .unwrap()
-        .value;
+    let volume = metric("hull_volume_m3");
     let object = gt.positions.len() as f64 * 1e-6;
     assert!(
         volume > object && volume < 1.6 * object,

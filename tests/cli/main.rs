@@ -5,6 +5,7 @@ mod formats;
 mod ingest;
 mod init;
 mod physics;
+mod render;
 mod resume;
 mod runner;
 mod simulate;

@@ -1,6 +1,6 @@
 //! Timings of the training loss (L1 + D-SSIM with gradient) and of the report metrics on
 //! 256² and 800² RGB images (pseudo-random content, the second image a noisy copy). Run with
-//! `CARGO_TARGET_DIR=/work/target-render cargo bench -p pipe-loss --bench loss`.
+//! `cargo bench -p pipe-loss --bench loss`.
 
 use divan::Bencher;
 use pipe_loss::{Image, l1_dssim, psnr, ssim_skimage};

@@ -59,6 +59,10 @@ fn probes() -> Vec<usize> {
 }
 
 fn fd_check(f: &dyn Fn(&[f32]) -> f64, a: &[f32], g: &[f32], rel: f64) -> f64 {
+    // `f64::max` drops NaN: check the whole gradient first, not only the probed entries.
+    if let Some(i) = g.iter().position(|v| !v.is_finite()) {
+        panic!("gradient entry {i} is not finite: {}", g[i]);
+    }
     let gmax = g.iter().map(|v| v.abs() as f64).fold(0.0, f64::max);
     let mut worst = 0.0f64;
     for i in probes() {

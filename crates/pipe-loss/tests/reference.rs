@@ -34,6 +34,27 @@ fn load() -> Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
 
+/// Max of |a - b| over all entries; panics on NaN (which `f64::max` would drop) and when the
+/// lengths differ (a missing gradient must not pass as a match of the common prefix).
+fn max_abs_diff(what: &str, a: &[f64], b: &[f64]) -> f64 {
+    assert_eq!(
+        a.len(),
+        b.len(),
+        "{what}: the arrays have {} and {} elements",
+        a.len(),
+        b.len()
+    );
+    max_checked(what, a.iter().zip(b).map(|(x, y)| (x - y).abs()))
+}
+
+/// The largest of `values` (0 for none); panics on a NaN, naming `what` and the element.
+fn max_checked(what: &str, values: impl IntoIterator<Item = f64>) -> f64 {
+    values.into_iter().enumerate().fold(0.0, |m, (i, v)| {
+        assert!(!v.is_nan(), "{what}: element {i} is NaN");
+        m.max(v)
+    })
+}
+
 fn close(name: &str, got: f64, want: f64, atol: f64) {
     assert!(
         (got - want).abs() <= atol,
@@ -106,21 +127,14 @@ fn all_pairs_match_reference() {
         if name == "texture" {
             let want_map = flat(&p["ssim_3dgs_map"]);
             let map = ssim_map(a, b).unwrap();
-            let map_err = map
-                .iter()
-                .zip(&want_map)
-                .map(|(x, y)| (x - y).abs())
-                .fold(0.0, f64::max);
+            let map_err = max_abs_diff("texture ssim map", &map, &want_map);
             assert!(map_err <= 1e-8, "texture ssim map err {map_err:e}");
             let want_g = flat(&p["grad_ssim_3dgs_wrt_img1"]);
             let (v, g) = ssim_grad(a, b).unwrap();
             close("texture ssim via grad", v, s3, 1e-12);
-            let gmax = want_g.iter().map(|x| x.abs()).fold(0.0, f64::max);
-            let gerr = g
-                .iter()
-                .zip(&want_g)
-                .map(|(x, y)| (*x as f64 - y).abs())
-                .fold(0.0, f64::max);
+            let gmax = max_checked("reference gradient", want_g.iter().map(|x| x.abs()));
+            let g: Vec<f64> = g.iter().map(|x| f64::from(*x)).collect();
+            let gerr = max_abs_diff("texture gradient", &g, &want_g);
             assert!(
                 gerr <= 1e-6 * gmax,
                 "texture gradient err {gerr:e} vs max {gmax:e}"
@@ -130,5 +144,28 @@ fn all_pairs_match_reference() {
                 gerr / gmax
             );
         }
+    }
+}
+
+/// The comparison helper fails on a NaN (which `f64::max` would drop) and on arrays of
+/// different lengths (a missing gradient), instead of passing a tolerance check.
+mod helpers_refuse {
+    use super::max_abs_diff;
+
+    #[test]
+    fn agrees_on_finite_equal_length_arrays() {
+        assert_eq!(max_abs_diff("t", &[1.0, -2.0], &[1.5, -2.0]), 0.5);
+    }
+
+    #[test]
+    #[should_panic(expected = "gradient: element 1 is NaN")]
+    fn a_nan_fails() {
+        max_abs_diff("gradient", &[0.0, f64::NAN], &[0.0, 0.0]);
+    }
+
+    #[test]
+    #[should_panic(expected = "gradient: the arrays have 2 and 3 elements")]
+    fn a_missing_gradient_fails() {
+        max_abs_diff("gradient", &[0.0; 2], &[0.0; 3]);
     }
 }

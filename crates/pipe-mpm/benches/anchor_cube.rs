@@ -1,4 +1,4 @@
-//! The anchors' MPM workload cube (`/work/shared/anchors/README.md`), shared by the `mpm` bench
+//! The anchors' MPM workload cube (`../shared/anchors/README.md`), shared by the `mpm` bench
 //! and the root package's `simulate_anchor` bench (included with `#[path]`).
 
 use glam::DVec3;

@@ -1,13 +1,14 @@
-//! MPM throughput at the anchor workload (`/work/shared/anchors/README.md`): domain [0,1]³,
+//! MPM throughput at the anchor workload (`../shared/anchors/README.md`): domain [0,1]³,
 //! dx = 1/G, dt = 1e-4 s, E = 1e3 Pa, ν = 0.2, ρ = 1 kg/m³, gravity, the 3 outermost cells
 //! stop outward motion; N particles uniform in a cube of side (N/8)^(1/3)·dx (8 per cell),
 //! centred in x/z, raised in y, at rest. Counter = particles, so divan's items/s is
-//! particle-substeps/s. Differences from the anchors: f64 instead of f32, and the particle
-//! positions come from our own generator (same distribution, not numpy's stream). The cube
+//! particle-substeps/s. Differences from the anchors: f64 unless `MPM_PRECISION=f32` (theirs
+//! is f32), and the particle positions come from our own generator (same distribution, not
+//! numpy's stream). The cube
 //! placement is the anchors' exactly: side = min((N/8)^(1/3)·dx, 1 − 10·dx), lower corner
 //! (0.5 − side/2, 0.5 − side/2 + 0.1·(1 − side), 0.5 − side/2); warm-up 10 substeps (Taichi's).
 //!
-//! `CARGO_TARGET_DIR=/work/target-bench cargo bench -p pipe-mpm --bench mpm`
+//! `cargo bench -p pipe-mpm --bench mpm`
 //!
 //! Extra modes (run before divan, printing one JSON line each, then exit if set):
 //! * `MPM_AD=1`: forward (checkpointed tape) and backward timed separately, 16 substeps,

@@ -5,7 +5,7 @@
 //! * full SVD: `svd3` (warm-started Jacobi) against `svd3_jacobi` (the cold-start reference);
 //! * rotation `R = U Vᵀ`: `svd3` against `polar_rotation` (scaled Newton).
 //!
-//! `CARGO_TARGET_DIR=/work/target-bench cargo bench -p pipe-mpm --bench svd`
+//! `cargo bench -p pipe-mpm --bench svd`
 
 use divan::Bencher;
 use divan::counter::ItemsCount;

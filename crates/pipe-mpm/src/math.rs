@@ -58,9 +58,13 @@ pub fn cofactor(f: &DMat3) -> DMat3 {
     DMat3::from_cols(c1.cross(c2), c2.cross(c0), c0.cross(c1))
 }
 
-/// Largest absolute entry.
+/// Largest absolute entry; NaN when an entry is NaN (which `f64::max` alone would drop, so a
+/// NaN never passes a tolerance check).
 #[inline]
 pub fn max_abs(m: &DMat3) -> f64 {
+    if m.is_nan() {
+        return f64::NAN;
+    }
     m.x_axis
         .abs()
         .max_element()

@@ -62,3 +62,56 @@ fn sand_drucker_prager() {
         alpha: f.param("friction_alpha"),
     });
 }
+
+/// The comparison helpers fail on a NaN (which `f64::max` would drop) and on arrays of
+/// different lengths (a missing particle or gradient), instead of passing a tolerance check.
+mod helpers_refuse {
+    use glam::{DMat3, DVec3};
+
+    use super::common::{max_abs_m, max_abs_s, max_abs_v, max_diff_m, max_diff_s, max_diff_v};
+
+    #[test]
+    fn agree_on_finite_equal_length_arrays() {
+        let a = [DVec3::new(1.0, -2.0, 0.5), DVec3::ZERO];
+        let b = [DVec3::new(1.0, -1.5, 0.5), DVec3::ZERO];
+        assert_eq!(max_diff_v(&a, &b), 0.5);
+        assert_eq!(max_abs_v(&a), 2.0);
+        assert_eq!(max_diff_s(&[1.0, 3.0], &[1.0, 1.0]), 2.0);
+        assert_eq!(max_abs_s(&[-4.0, 3.0]), 4.0);
+        assert_eq!(max_diff_m(&[DMat3::IDENTITY], &[DMat3::ZERO]), 1.0);
+        assert_eq!(max_abs_m(&[DMat3::IDENTITY * -3.0]), 3.0);
+    }
+
+    #[test]
+    #[should_panic(expected = "max_diff_v: element 1 is NaN")]
+    fn a_nan_component_fails_max_diff_v() {
+        let a = [DVec3::ZERO, DVec3::new(0.0, f64::NAN, 0.0)];
+        max_diff_v(&a, &[DVec3::ZERO; 2]);
+    }
+
+    #[test]
+    #[should_panic(expected = "max_diff_m: element 0 is NaN")]
+    fn a_nan_entry_fails_max_diff_m() {
+        let mut m = DMat3::IDENTITY;
+        m.z_axis.x = f64::NAN;
+        max_diff_m(&[m], &[DMat3::IDENTITY]);
+    }
+
+    #[test]
+    #[should_panic(expected = "max_abs_s: element 2 is NaN")]
+    fn a_nan_fails_max_abs_s() {
+        max_abs_s(&[0.0, 1.0, f64::NAN]);
+    }
+
+    #[test]
+    #[should_panic(expected = "the arrays have 3 and 2 elements")]
+    fn a_missing_element_fails_max_diff_s() {
+        max_diff_s(&[0.0; 3], &[0.0; 2]);
+    }
+
+    #[test]
+    #[should_panic(expected = "max_diff_v: the arrays have 1 and 2 elements")]
+    fn a_missing_particle_fails_max_diff_v() {
+        max_diff_v(&[DVec3::ZERO], &[DVec3::ZERO; 2]);
+    }
+}

@@ -348,13 +348,14 @@ fn checkpoint_interval_and_truncation() {
                 ..Default::default()
             },
         );
-        match g {
-            Ok(g) => {
-                assert_eq!(by_default.state, g.state, "snapshots = {snapshots}");
-                assert_eq!(by_default.material, g.material, "snapshots = {snapshots}");
-            }
-            Err(e) => assert_eq!(snapshots, 0, "{e}"),
+        if snapshots == 0 {
+            let e = g.expect_err("0 snapshots is refused").to_string();
+            assert!(e.contains("snapshots") && e.contains(">= 1"), "{e}");
+            continue;
         }
+        let g = g.unwrap_or_else(|e| panic!("snapshots = {snapshots}: {e}"));
+        assert_eq!(by_default.state, g.state, "snapshots = {snapshots}");
+        assert_eq!(by_default.material, g.material, "snapshots = {snapshots}");
     }
     let k = 4;
     let gt = sim

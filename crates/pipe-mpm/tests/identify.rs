@@ -15,7 +15,7 @@
 use glam::DVec3;
 use pipe_mpm::{
     Aabb, BackwardOptions, Boundaries, BoundaryKind, Collider, Constitutive, Gradients, Material,
-    NeoHookean, Newtonian, SimConfig, Simulator, State, VonMises,
+    NeoHookean, Newtonian, Precision, SimConfig, Simulator, State, VonMises,
 };
 use serde_json::Value;
 
@@ -73,8 +73,11 @@ impl<M: Constitutive> Scene<M> {
         let frames = seen.iter().map(|(f, _)| *f).max().unwrap_or(0);
         let spf = self.substeps_per_frame;
         let mut s = self.start(v0);
+        // A checkpoint every 25 substeps (dividing both scenes' frames): short segments keep
+        // the backward pass near 3× the forward (frame-long ones near 6×, §3 of BENCHMARKS.md).
+        let every = if spf.is_multiple_of(25) { 25 } else { spf };
         let tape = sim
-            .forward_tape(&mut s, &mat, 0.0, frames * spf, spf)
+            .forward_tape(&mut s, &mat, 0.0, frames * spf, every)
             .unwrap();
         let mut loss = 0.0;
         let g = sim
@@ -102,13 +105,16 @@ impl<M: Constitutive> Scene<M> {
 
     /// Gradient descent with a backtracking line search (Armijo) on the parameters of
     /// `(ln p, v0)` that `learn` selects, against the observed frames `seen`, until the loss
-    /// stops shrinking (at most `iters` steps); returns `(p, v0, loss)`.
+    /// stops shrinking (at most `iters` steps); returns `(p, v0, loss)`. The first trial step
+    /// is `first` times the gradient (`Move(d)`: the step that moves the parameters by `d`, in
+    /// ln p and m/s); each accepted step doubles the next trial's, each rejected one halves it.
     fn identify(
         &self,
         (p, v0): (f64, DVec3),
         seen: &[(usize, Vec<DVec3>)],
         learn: [bool; 4],
         iters: usize,
+        first: FirstStep,
     ) -> (f64, DVec3, f64) {
         let eval = |x: &[f64; 4]| {
             let (l, g) = self.loss_and_grad(x[0].exp(), DVec3::new(x[1], x[2], x[3]), seen);
@@ -120,7 +126,10 @@ impl<M: Constitutive> Scene<M> {
         };
         let mut x = [p.ln(), v0.x, v0.y, v0.z];
         let (mut loss, mut g) = eval(&x);
-        let mut step = 1e-3;
+        let mut step = match first {
+            FirstStep::Gradient(s) => s,
+            FirstStep::Move(d) => d / g.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-300),
+        };
         for it in 0..iters {
             println!(
                 "iter {it:2}: loss {loss:.4e} m^2, p {:.4e}, v0 [{:.4}, {:.4}, {:.4}] m/s",
@@ -148,6 +157,15 @@ impl<M: Constitutive> Scene<M> {
         }
         (x[0].exp(), DVec3::new(x[1], x[2], x[3]), loss)
     }
+}
+
+/// The first trial step of [`Scene::identify`].
+#[derive(Debug, Clone, Copy)]
+enum FirstStep {
+    /// This multiple of the gradient.
+    Gradient(f64),
+    /// The multiple of the gradient that moves the parameters by this much.
+    Move(f64),
 }
 
 /// A 6×6×6 block (dx = 5 cm, 8 particles per cell, ρ = 1000, ν = 0.3) thrown sideways onto a
@@ -195,10 +213,17 @@ fn initial_velocity_then_young_modulus_from_trajectories() {
         &seen[..2],
         [false, true, true, true],
         30,
+        FirstStep::Gradient(1e-3),
     );
     println!("v0 {v0} (true {v_true}), loss {loss:.3e} m^2");
     assert!((v0 - v_true).length() < 2e-3, "v0 {v0} vs {v_true}");
-    let (e, _, loss) = scene.identify((e0, v0), &seen, [true, false, false, false], 30);
+    let (e, _, loss) = scene.identify(
+        (e0, v0),
+        &seen,
+        [true, false, false, false],
+        30,
+        FirstStep::Gradient(1e-3),
+    );
     println!("E {e:.4e} Pa (true {e_true:e}), loss {loss:.3e} m^2");
     assert!((e / e_true - 1.0).abs() < 0.02, "E {e} vs {e_true}");
 }
@@ -240,25 +265,40 @@ fn pacnerf<M: Constitutive>(
     (s, seen, v0, p)
 }
 
+/// How close each PAC-NeRF material scalar must come to the truth (the README's claim).
+const REL_TOL: f64 = 5e-3;
+
 /// v0 from frame 4 (to within `v_tol`, m/s), then the scalar from frames 4 and 7 starting at
-/// a tenth of `truth`.
+/// a tenth of `truth`, to within [`REL_TOL`].
 fn identify_pacnerf<M: Constitutive>(
     (scene, seen, v_true): (Scene<M>, Observed, DVec3),
     truth: f64,
     name: &str,
     v_tol: f64,
 ) {
+    let started = std::time::Instant::now();
     let (_, v0, _) = scene.identify(
         (truth / 10.0, DVec3::ZERO),
         &seen[..1],
         [false, true, true, true],
         10,
+        FirstStep::Gradient(1e-3),
     );
     println!("v0 {v0} (true {v_true})");
     assert!((v0 - v_true).length() < v_tol, "v0 {v0} vs {v_true}");
-    let (p, _, loss) = scene.identify((truth / 10.0, v0), &seen, [true, false, false, false], 12);
-    println!("{name} {p:.4e} (true {truth:e}), loss {loss:.3e} m^2");
-    assert!((p / truth - 1.0).abs() < 0.05, "{name} {p} vs {truth}");
+    let (p, _, loss) = scene.identify(
+        (truth / 10.0, v0),
+        &seen,
+        [true, false, false, false],
+        12,
+        FirstStep::Gradient(1e-3),
+    );
+    println!(
+        "{name} {p:.4e} (true {truth:e}, {:+.2} %), loss {loss:.3e} m^2, {:.0} s",
+        100.0 * (p / truth - 1.0),
+        started.elapsed().as_secs_f64()
+    );
+    assert!((p / truth - 1.0).abs() < REL_TOL, "{name} {p} vs {truth}");
 }
 
 fn count(p: &Value) -> usize {
@@ -317,10 +357,9 @@ fn pacnerf_blob_yield_stress() {
     identify_pacnerf((scene, seen, v0), truth, "yield stress (Pa)", 1e-2);
 }
 
-/// PAC-NeRF's droplet (7 207 particles, Newtonian fluid, κ known): viscosity, 20 → 200 Pa·s.
-#[test]
-#[ignore = "about 2.5 minutes: ~20 forward + backward passes of 1 400 substeps"]
-fn pacnerf_droplet_viscosity() {
+/// PAC-NeRF's droplet (7 207 particles, Newtonian fluid, κ known), learning its viscosity μ;
+/// the scene, its frames 4 and 7, its v0 and μ.
+fn droplet() -> (Scene<Newtonian>, Observed, DVec3, f64) {
     let (scene, seen, v0, p) = pacnerf(
         "droplet-newtonian",
         |p, mu| {
@@ -329,6 +368,34 @@ fn pacnerf_droplet_viscosity() {
         },
         |g, mu| g.material.fluid_mu_kappa().0 * mu,
     );
-    let truth = p["mu"].as_f64().unwrap();
+    (scene, seen, v0, p["mu"].as_f64().unwrap())
+}
+
+/// PAC-NeRF's droplet: viscosity, 20 → 200 Pa·s.
+#[test]
+#[ignore = "IGNORE_DROPLET"]
+fn pacnerf_droplet_viscosity() {
+    let (scene, seen, v0, truth) = droplet();
     identify_pacnerf((scene, seen, v0), truth, "viscosity (Pa s)", 5e-3);
+}
+
+/// In the default suite: the droplet's viscosity from a tenth of it (20 → 200 Pa·s) against
+/// PAC-NeRF's own frames 4 and 7, with the initial velocity the dataset gives (the case above
+/// and the block test learn it), to within [`REL_TOL`].
+#[test]
+fn pacnerf_droplet_viscosity_from_its_frames() {
+    let (mut scene, seen, v0, truth) = droplet();
+    scene.config.precision = Precision::F32;
+    let (mu, _, loss) = scene.identify(
+        (truth / 10.0, v0),
+        &seen,
+        [true, false, false, false],
+        8,
+        FirstStep::Move(0.1),
+    );
+    println!("viscosity {mu:.4e} Pa s (true {truth:e}), loss {loss:.3e} m^2");
+    assert!(
+        (mu / truth - 1.0).abs() < REL_TOL,
+        "viscosity {mu} vs {truth}"
+    );
 }

@@ -1,9 +1,9 @@
-//! Forward and forward+backward timings on the anchor workload (`/work/shared/anchors`
+//! Forward and forward+backward timings on the anchor workload (`../shared/anchors`
 //! README): camera at the origin looking down +z, hfov 50°, square image, means uniform in
 //! [-1.6,1.6]²×[3,5], log-uniform scales in [0.005, 0.03], random unit quaternions, opacity
 //! U(0.1, 0.9), RGB colours, black background; the loss weights of the backward are fixed
 //! pseudo-random numbers in [-1, 1]. Run with
-//! `CARGO_TARGET_DIR=/work/target-render cargo bench -p pipe-render --bench raster`;
+//! `cargo bench -p pipe-render --bench raster`;
 //! set `RASTER_PHASES=all` (or e.g. `=100000:800`) to also print the per-phase split of one run per configuration.
 
 #[path = "../tests/common/mod.rs"]

@@ -247,3 +247,33 @@ fn d_random200_sh3_f64() {
 
 #[allow(dead_code)]
 fn unused(_: Value) {}
+
+/// The comparison helpers fail on a NaN (which `f64::max` would drop) and on arrays of
+/// different lengths (a missing gradient), instead of passing a tolerance check.
+mod helpers_refuse {
+    use super::common::{max_abs, max_abs_diff};
+
+    #[test]
+    fn agree_on_finite_equal_length_arrays() {
+        assert_eq!(max_abs_diff(&[1.0, -2.0], &[1.5, -2.0]), 0.5);
+        assert_eq!(max_abs(&[1.0, -2.0]), 2.0);
+    }
+
+    #[test]
+    #[should_panic(expected = "max_abs_diff: element 1 is NaN")]
+    fn a_nan_fails_max_abs_diff() {
+        max_abs_diff(&[0.0, f64::NAN], &[0.0, 0.0]);
+    }
+
+    #[test]
+    #[should_panic(expected = "max_abs: element 0 is NaN")]
+    fn a_nan_fails_max_abs() {
+        max_abs(&[f64::NAN, 1.0]);
+    }
+
+    #[test]
+    #[should_panic(expected = "max_abs_diff: the arrays have 2 and 3 elements")]
+    fn a_missing_gradient_fails_max_abs_diff() {
+        max_abs_diff(&[0.0; 2], &[0.0; 3]);
+    }
+}

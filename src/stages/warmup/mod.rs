@@ -6,6 +6,7 @@
 
 pub mod adam;
 pub mod density;
+mod gt_mask;
 
 use std::path::Path;
 
@@ -17,8 +18,10 @@ use serde_json::{Value, json};
 use self::adam::AdamConfig;
 use self::density::{DensifyConfig, DensityStats, GroupStates};
 use crate::io::image::{self, Rgb8};
-use crate::pipeline::spec::Preset;
-use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
+use crate::pipeline::spec::{Preset, SceneSpec};
+use crate::pipeline::stage::{
+    InputFile, MetricRow, ParamError, StageContext, StageError, TypedStage,
+};
 use crate::scene::camera::Camera;
 use crate::scene::frames::{FrameRow, Frames, Role};
 use crate::scene::gaussians::Gaussians;
@@ -291,12 +294,22 @@ fn backdrop_alpha_grad(d_image: &[[f32; 3]], backdrop: &[f32]) -> impl Iterator<
 impl TypedStage for Warmup {
     type Params = WarmupParams;
     const KIND: &'static str = "warmup";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
     const DESCRIPTION: &'static str = "Fit the canonical 3D Gaussians to the first frame(s) (3DGS: Adam, L1 + D-SSIM, densification)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "init"];
 
     fn output_schemas(&self) -> Vec<(&'static str, u32)> {
         vec![(Gaussians::NAME, Gaussians::VERSION)]
+    }
+
+    /// The captures and ground-truth masks of the fitted frames, when the scene has such
+    /// masks: the views are also scored against them (`*_psnr_gtmask`).
+    fn inputs(&self, p: &WarmupParams, scene: &SceneSpec) -> Result<Vec<InputFile>, StageError> {
+        let files = gt_mask::files(&p.frames, scene).map_err(StageError::failed)?;
+        Ok(files
+            .into_iter()
+            .flat_map(|f| [f.capture, f.mask])
+            .collect())
     }
 
     fn preset_params(&self, preset: Preset) -> Value {
@@ -631,13 +644,16 @@ impl TypedStage for Warmup {
         // Held-out views (and the training views, for reference). The score compares the
         // render composited over the camera's plate with the capture (the object's shadow
         // excluded); `*_psnr_solid` compares the render on the ingest background colour with
-        // the composited image.
+        // the composited image; `*_psnr_gtmask` compares the same render with the capture
+        // inside the ground-truth mask, where the scene has one (a matting error costs there).
         std::fs::create_dir_all(ctx.out_dir.join("renders")).map_err(StageError::failed)?;
         let rg = splat::render_gaussians(&g);
         let solid = background.repeat(w * h);
+        let gt_files = gt_mask::files(&p.frames, ctx.scene).map_err(StageError::failed)?;
         let mut summary = Vec::new();
         for (set, targets) in [("test", &test), ("train", &train)] {
             let (mut psnr_sum, mut ssim_sum, mut solid_sum) = (0.0, 0.0, 0.0);
+            let mut gtmask = Vec::new();
             for target in targets.iter() {
                 let (view, frame) = (target.row.view, target.row.frame);
                 let out = pipe_render::render(&rg, &target.camera, &opts).map_err(|source| {
@@ -666,11 +682,23 @@ impl TypedStage for Warmup {
                 psnr_sum += psnr;
                 ssim_sum += ssim;
                 solid_sum += psnr_solid;
-                for (metric, value) in [
+                let mut scores = vec![
                     (format!("{set}_psnr"), psnr),
                     (format!("{set}_ssim"), ssim),
                     (format!("{set}_psnr_solid"), psnr_solid),
-                ] {
+                ];
+                if let Some(f) = gt_files.iter().find(|f| (f.view, f.frame) == (view, frame)) {
+                    let truth_gt = gt_mask::target(f, w as u32, h as u32, backdrop)
+                        .map_err(|e| StageError::failed(WarmupError::Invalid(e)))?;
+                    let psnr_gt = pipe_loss::psnr(
+                        rendered,
+                        img("target", &truth_gt).map_err(StageError::failed)?,
+                    )
+                    .map_err(StageError::failed)?;
+                    gtmask.push(psnr_gt);
+                    scores.push((format!("{set}_psnr_gtmask"), psnr_gt));
+                }
+                for (metric, value) in scores {
                     ctx.metric(MetricRow {
                         epoch: None,
                         view: Some(view),
@@ -702,18 +730,27 @@ impl TypedStage for Warmup {
             }
             if !targets.is_empty() {
                 let n = targets.len() as f64;
-                summary.push(format!(
-                    "{set} PSNR {:.2} dB, SSIM {:.4} over the plate, {:.2} dB on the solid background ({} views)",
-                    psnr_sum / n,
-                    ssim_sum / n,
-                    solid_sum / n,
-                    targets.len()
-                ));
-                for (metric, value) in [
+                let mut means = vec![
                     (format!("{set}_psnr_mean"), psnr_sum / n),
                     (format!("{set}_ssim_mean"), ssim_sum / n),
                     (format!("{set}_psnr_solid_mean"), solid_sum / n),
-                ] {
+                ];
+                let mut line = format!(
+                    "{set} PSNR {:.2} dB, SSIM {:.4} over the plate, {:.2} dB on the solid background",
+                    psnr_sum / n,
+                    ssim_sum / n,
+                    solid_sum / n
+                );
+                if !gtmask.is_empty() {
+                    let mean = gtmask.iter().sum::<f64>() / gtmask.len() as f64;
+                    means.push((format!("{set}_psnr_gtmask_mean"), mean));
+                    line += &format!(
+                        ", {mean:.2} dB against the ground-truth mask ({} views)",
+                        gtmask.len()
+                    );
+                }
+                summary.push(format!("{line} ({} views)", targets.len()));
+                for (metric, value) in means {
                     ctx.metric(MetricRow {
                         epoch: None,
                         view: None,

@@ -189,8 +189,9 @@ impl SeedGrad<'_> {
 pub struct BackwardOptions {
     /// Backpropagate through only the last `n` substeps (e.g. one frame); `None` = all.
     pub truncate: Option<usize>,
-    /// Recomputed states kept alive while a segment is reversed (≥ 1; default
-    /// [`SEGMENT_SNAPSHOTS`]): the memory/time trade of the backward pass. A segment of `k`
+    /// Recomputed states kept alive while a segment is reversed (≥ 1: 0 is refused with
+    /// [`crate::MpmError::InvalidParameter`]; default [`SEGMENT_SNAPSHOTS`]): the memory/time
+    /// trade of the backward pass. A segment of `k`
     /// substeps costs about `k·r` recomputed substeps with `C(c + r, c) ≥ k` for `c` snapshots;
     /// `c ≥ k − 1` recomputes each substep once, keeping its intermediates.
     pub snapshots: usize,

@@ -84,21 +84,23 @@ impl<M: Constitutive> Simulator<M> {
 
 #[cfg(test)]
 mod tests {
-    use std::sync::atomic::Ordering;
-
     use glam::DVec3;
 
-    use crate::isa::CAP;
+    use crate::isa::CapGuard;
     use crate::{
         Aabb, BackwardOptions, Constitutive, FixedCorotated, Gradients, Material, NeoHookean,
         SimConfig, Simulator, State, StateGrad,
     };
 
-    /// A taped forward and its backward under instruction-set cap `cap` ([`CAP`]): a blob in
-    /// the middle plus particles next to each domain wall moving out of it (the held-position
-    /// branch of the G2P adjoint).
-    fn forward_and_backward<M: Constitutive>(model: M, cap: u8) -> (State, Gradients) {
-        CAP.store(cap, Ordering::Relaxed);
+    /// A taped forward and its backward under instruction-set cap `cap` (set through `isa`,
+    /// held by the caller for the whole comparison): a blob in the middle plus particles next
+    /// to each domain wall moving out of it (the held-position branch of the G2P adjoint).
+    fn forward_and_backward<M: Constitutive>(
+        model: M,
+        isa: &CapGuard,
+        cap: u8,
+    ) -> (State, Gradients) {
+        isa.set(cap);
         let sim = Simulator::new(
             model,
             SimConfig::new(Aabb::new(DVec3::ZERO, DVec3::ONE), 0.05, 1e-4),
@@ -144,14 +146,14 @@ mod tests {
                 BackwardOptions::default(),
             )
             .unwrap();
-        CAP.store(0, Ordering::Relaxed);
         (s, g)
     }
 
     fn same_bits<M: Constitutive>(model: M) {
-        let best = forward_and_backward(model.clone(), 0);
+        let isa = CapGuard::lock();
+        let best = forward_and_backward(model.clone(), &isa, 0);
         for cap in [1, 2] {
-            let other = forward_and_backward(model.clone(), cap);
+            let other = forward_and_backward(model.clone(), &isa, cap);
             assert_eq!(best.0, other.0, "{} state, cap {cap}", M::NAME);
             assert_eq!(best.1.state, other.1.state, "{} ∂L/∂s₀, cap {cap}", M::NAME);
             assert_eq!(

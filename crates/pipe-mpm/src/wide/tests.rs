@@ -3,11 +3,9 @@
 //! and whether its buffers are fresh or kept from another run. (The `f64` results themselves
 //! are checked against the PAC-NeRF fixtures and by finite differences in `tests/`.)
 
-use std::sync::atomic::Ordering;
-
 use glam::{DMat3, DVec3};
 
-use crate::isa::CAP;
+use crate::isa::CapGuard;
 use crate::{
     Aabb, Boundaries, BoundaryKind, Collider, Constitutive, DruckerPrager, FixedCorotated,
     Material, NeoHookean, Newtonian, ParticleForce, Precision, RunReport, SimConfig, Simulator,
@@ -144,14 +142,15 @@ fn bit_identical_across_threads_and_instruction_sets() {
         .num_threads(2)
         .build()
         .unwrap();
+    let isa = CapGuard::lock();
     for f32_ in [true, false] {
+        isa.set(0);
         let a = one.install(|| run_with(FixedCorotated, &mat, 12, f32_));
         let b = two.install(|| run_with(FixedCorotated, &mat, 12, f32_));
         assert_eq!(a, b, "threads, f32 {f32_}");
         for cap in [1, 2] {
-            CAP.store(cap, Ordering::Relaxed);
+            isa.set(cap);
             let c = two.install(|| run_with(FixedCorotated, &mat, 12, f32_));
-            CAP.store(0, Ordering::Relaxed);
             assert_eq!(a, c, "instruction set cap {cap}, f32 {f32_}");
         }
     }

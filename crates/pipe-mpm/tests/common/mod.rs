@@ -178,39 +178,67 @@ fn state(v: &Value, fluid: bool, as_f32: bool) -> State {
     }
 }
 
-/// Max abs difference of two vector arrays.
+/// The largest of `values` (0 for none). Panics on a NaN, naming `what` and the element:
+/// `f64::max` would drop it, and a NaN would pass any tolerance.
+pub fn max_checked(what: &str, values: impl IntoIterator<Item = f64>) -> f64 {
+    values.into_iter().enumerate().fold(0.0, |m, (i, v)| {
+        assert!(!v.is_nan(), "{what}: element {i} is NaN");
+        m.max(v)
+    })
+}
+
+/// Panics unless the two arrays compared by `what` have the same length (a missing gradient
+/// or particle must not pass as a match of the common prefix).
+fn same_len(what: &str, a: usize, b: usize) {
+    assert_eq!(a, b, "{what}: the arrays have {a} and {b} elements");
+}
+
+/// Largest absolute component of a vector; NaN if a component is NaN.
+fn vec_max_abs(v: DVec3) -> f64 {
+    if v.is_nan() {
+        f64::NAN
+    } else {
+        v.abs().max_element()
+    }
+}
+
+/// Max abs difference of two vector arrays (panics on NaN or a length mismatch).
 pub fn max_diff_v(a: &[DVec3], b: &[DVec3]) -> f64 {
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (*x - *y).abs().max_element())
-        .fold(0.0, f64::max)
+    same_len("max_diff_v", a.len(), b.len());
+    max_checked(
+        "max_diff_v",
+        a.iter().zip(b).map(|(x, y)| vec_max_abs(*x - *y)),
+    )
 }
 
-/// Max abs difference of two matrix arrays.
+/// Max abs difference of two matrix arrays (panics on NaN or a length mismatch).
 pub fn max_diff_m(a: &[DMat3], b: &[DMat3]) -> f64 {
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| max_abs(&(*x - *y)))
-        .fold(0.0, f64::max)
+    same_len("max_diff_m", a.len(), b.len());
+    max_checked(
+        "max_diff_m",
+        a.iter().zip(b).map(|(x, y)| max_abs(&(*x - *y))),
+    )
 }
 
+/// Max abs entry of a vector array (panics on NaN).
 pub fn max_abs_v(a: &[DVec3]) -> f64 {
-    a.iter().map(|x| x.abs().max_element()).fold(0.0, f64::max)
+    max_checked("max_abs_v", a.iter().map(|x| vec_max_abs(*x)))
 }
 
+/// Max abs entry of a matrix array (panics on NaN).
 pub fn max_abs_m(a: &[DMat3]) -> f64 {
-    a.iter().map(max_abs).fold(0.0, f64::max)
+    max_checked("max_abs_m", a.iter().map(max_abs))
 }
 
+/// Max abs difference of two scalar arrays (panics on NaN or a length mismatch).
 pub fn max_diff_s(a: &[f64], b: &[f64]) -> f64 {
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f64::max)
+    same_len("max_diff_s", a.len(), b.len());
+    max_checked("max_diff_s", a.iter().zip(b).map(|(x, y)| (x - y).abs()))
 }
 
+/// Max abs entry of a scalar array (panics on NaN).
 pub fn max_abs_s(a: &[f64]) -> f64 {
-    a.iter().map(|x| x.abs()).fold(0.0, f64::max)
+    max_checked("max_abs_s", a.iter().map(|x| x.abs()))
 }
 
 /// A 4×4×4 block of particles at spacing `dx/2` thrown down at 1 m/s, with particle 0 placed

@@ -58,17 +58,31 @@ pub fn fixture_camera<T: Real>(inp: &Value) -> Camera<T> {
     }
 }
 
-/// Max of |a - b| over all entries.
-pub fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f64::max)
+/// The largest of `values` (0 for none). Panics on a NaN, naming `what` and the element:
+/// `f64::max` would drop it, and a NaN would pass any tolerance.
+pub fn max_checked(what: &str, values: impl IntoIterator<Item = f64>) -> f64 {
+    values.into_iter().enumerate().fold(0.0, |m, (i, v)| {
+        assert!(!v.is_nan(), "{what}: element {i} is NaN");
+        m.max(v)
+    })
 }
 
+/// Max of |a - b| over all entries; panics on NaN and when the lengths differ (a missing
+/// gradient must not pass as a match of the common prefix).
+pub fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
+    assert_eq!(
+        a.len(),
+        b.len(),
+        "max_abs_diff: the arrays have {} and {} elements",
+        a.len(),
+        b.len()
+    );
+    max_checked("max_abs_diff", a.iter().zip(b).map(|(x, y)| (x - y).abs()))
+}
+
+/// Max of |a| over all entries; panics on NaN.
 pub fn max_abs(a: &[f64]) -> f64 {
-    a.iter().map(|x| x.abs()).fold(0.0, f64::max)
+    max_checked("max_abs", a.iter().map(|x| x.abs()))
 }
 
 /// SplitMix64: tiny deterministic PRNG for test and bench scenes.
