@@ -6,6 +6,7 @@ pub mod image;
 pub mod pacnerf;
 pub mod parquet;
 pub mod ply;
+pub mod resample;
 
 /// A JSON file that cannot be written or read.
 #[derive(Debug, thiserror::Error)]

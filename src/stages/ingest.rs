@@ -18,6 +18,7 @@ use serde_json::{Value, json};
 
 use crate::io::image::{self, Rgb8};
 use crate::io::pacnerf::{self, PacnerfImage, PacnerfScene};
+use crate::io::resample;
 use crate::pipeline::spec::{DatasetKind, Preset, SceneSpec};
 use crate::pipeline::stage::{
     InputFile, MetricRow, ParamError, StageContext, StageError, TypedStage,
@@ -51,6 +52,16 @@ pub struct IngestParams {
     /// Colour behind the object in the composited images, RGB in [0, 1].
     #[serde(default = "default_background")]
     pub background: [f32; 3],
+    /// Image scale in (0, 1]: every image, plate and ground-truth mask is area-resampled to
+    /// `round(scale·size)` and the intrinsics follow (`fx, cx` by the width's ratio, `fy, cy`
+    /// by the height's), so every later stage works on the smaller images (about `scale²` of
+    /// the pixels and of the rendering time). The preset sets it when the file does not.
+    #[serde(default = "default_scale")]
+    pub scale: f64,
+}
+
+fn default_scale() -> f64 {
+    1.0
 }
 
 fn default_matte() -> MatteMode {
@@ -93,7 +104,7 @@ pub struct Ingest;
 impl TypedStage for Ingest {
     type Params = IngestParams;
     const KIND: &'static str = "ingest";
-    const VERSION: u32 = 3;
+    const VERSION: u32 = 4;
     const DESCRIPTION: &'static str = "Read a PAC-NeRF capture, matte the object against each camera's background plate, write masks, composited images, the plates and frames.arrow";
 
     fn output_schemas(&self) -> Vec<(&'static str, u32)> {
@@ -109,6 +120,15 @@ impl TypedStage for Ingest {
             return Err(ParamError {
                 path: format!("background[{c}]"),
                 message: format!("must be in [0, 1], found {}", p.background[c]),
+            });
+        }
+        if !(p.scale > 0.0 && p.scale <= 1.0) {
+            return Err(ParamError {
+                path: "scale".into(),
+                message: format!(
+                    "must be in (0, 1] (images are only ever made smaller), found {}",
+                    p.scale
+                ),
             });
         }
         if p.frames.as_ref().is_some_and(Vec::is_empty) {
@@ -194,9 +214,23 @@ impl TypedStage for Ingest {
                     ds.plates[&plates[0].0].path.display()
                 ))));
             }
-            image::write_rgb8(&ctx.out_dir.join(plate_rel(*v)), pl)
-                .map_err(|e| StageError::failed(IngestError::from(e)))?;
         }
+        let full = (w0, h0);
+        let (w2, h2) = resample::scaled_size(w0, h0, p.scale);
+        let plates: Vec<(u16, Rgb8)> = plates
+            .into_iter()
+            .map(|(v, pl)| {
+                let data = resample::area(&pl.data, w0, h0, 3, w2, h2);
+                let small = Rgb8 {
+                    width: w2,
+                    height: h2,
+                    data,
+                };
+                image::write_rgb8(&ctx.out_dir.join(plate_rel(v)), &small)
+                    .map(|()| (v, small))
+                    .map_err(|e| StageError::failed(IngestError::from(e)))
+            })
+            .collect::<Result<_, _>>()?;
 
         ctx.progress.start("matte", images.len() as u64);
         let out_dir = ctx.out_dir.to_path_buf();
@@ -210,7 +244,7 @@ impl TypedStage for Ingest {
         let mut warnings = Vec::new();
         for frame_images in by_frame.values() {
             ctx.check_interrupted()?;
-            let done = ingest_frame(frame_images, &plates, p, scene, &out_dir)
+            let done = ingest_frame(frame_images, &plates, full, p, scene, &out_dir)
                 .map_err(StageError::failed)?;
             ctx.progress.inc(frame_images.len() as u64);
             for d in done {
@@ -264,13 +298,16 @@ impl TypedStage for Ingest {
                 warnings.join("; ")
             ));
         }
+        let resized = if (w2, h2) == full {
+            String::new()
+        } else {
+            format!(" (scale {}: from {w0}×{h0})", p.scale)
+        };
         ctx.progress.log(&format!(
-            "{} images from {} cameras ({} test), {}×{} px",
+            "{} images from {} cameras ({} test), {w2}×{h2} px{resized}",
             rows.len(),
             views.len(),
             scene.test_views.len(),
-            w0,
-            h0
         ));
         table::write(&ctx.out_dir.join("frames.arrow"), &Frames { rows })
             .map_err(StageError::failed)?;
@@ -328,6 +365,8 @@ struct Loaded<'a> {
     /// The ground-truth mask binarised to 0/255, when the scene has one.
     gt: Option<Vec<u8>>,
     camera: pipe_matte::Pinhole,
+    /// `[fx, fy, cx, cy]` at the ingested size (pixels).
+    intrinsics: [f64; 4],
 }
 
 /// What one image gave.
@@ -338,26 +377,33 @@ struct Ingested {
     empty: bool,
 }
 
-/// Read one image, check it against its plate, read its ground-truth mask if any.
-fn load<'a>(img: &'a PacnerfImage, plate: &Rgb8, root: &Path) -> Result<Loaded<'a>, IngestError> {
+/// Read one image, check it against the capture's size `full`, read its ground-truth mask if
+/// any, and resample both to its plate's (the ingested) size.
+fn load<'a>(
+    img: &'a PacnerfImage,
+    plate: &Rgb8,
+    full: (u32, u32),
+    root: &Path,
+) -> Result<Loaded<'a>, IngestError> {
     let rgb = image::read_rgb8(&img.path)?;
     let (w, h) = (rgb.width, rgb.height);
-    if (w, h) != (plate.width, plate.height) {
+    if (w, h) != full {
         return Err(IngestError::Invalid(format!(
             "{}: image is {w}×{h}, but the plate of camera {} is {}×{}",
             img.path.display(),
             img.view,
-            plate.width,
-            plate.height
+            full.0,
+            full.1
         )));
     }
-    let [_, _, cx, cy] = img.intrinsics;
+    let [fx, fy, cx, cy] = img.intrinsics;
     if !(0.0..=f64::from(w)).contains(&cx) || !(0.0..=f64::from(h)).contains(&cy) {
         return Err(IngestError::Invalid(format!(
             "{}: principal point ({cx}, {cy}) lies outside the {w}×{h} image; are the intrinsics for another resolution?",
             img.path.display()
         )));
     }
+    let (w2, h2) = (plate.width, plate.height);
     let gt_path = gt_mask_path(root, img);
     let gt = if gt_path.exists() {
         let (gw, gh, g) = image::read_gray8(&gt_path)?;
@@ -367,20 +413,28 @@ fn load<'a>(img: &'a PacnerfImage, plate: &Rgb8, root: &Path) -> Result<Loaded<'
                 gt_path.display()
             )));
         }
-        Some(
-            g.into_iter()
-                .map(|v| if v >= 128 { 255 } else { 0 })
-                .collect::<Vec<u8>>(),
-        )
+        let binary: Vec<u8> = g
+            .into_iter()
+            .map(|v| if v >= 128 { 255 } else { 0 })
+            .collect();
+        Some(resample::mask(&binary, w, h, w2, h2))
     } else {
         None
     };
-    let camera = Camera::new(&img.world_from_camera, img.intrinsics, w, h).pinhole();
+    let (sx, sy) = (f64::from(w2) / f64::from(w), f64::from(h2) / f64::from(h));
+    let intrinsics = [fx * sx, fy * sy, cx * sx, cy * sy];
+    let rgb = Rgb8 {
+        width: w2,
+        height: h2,
+        data: resample::area(&rgb.data, w, h, 3, w2, h2),
+    };
+    let camera = Camera::new(&img.world_from_camera, intrinsics, w2, h2).pinhole();
     Ok(Loaded {
         img,
         rgb,
         gt,
         camera,
+        intrinsics,
     })
 }
 
@@ -466,6 +520,7 @@ fn frame_masks(
 fn ingest_frame(
     images: &[&PacnerfImage],
     plates: &[(u16, Rgb8)],
+    full: (u32, u32),
     p: &IngestParams,
     scene: &SceneSpec,
     out_dir: &Path,
@@ -479,7 +534,7 @@ fn ingest_frame(
     };
     let loaded: Vec<Loaded<'_>> = images
         .par_iter()
-        .map(|img| load(img, plate_of(img.view), &scene.path))
+        .map(|img| load(img, plate_of(img.view), full, &scene.path))
         .collect::<Result<_, _>>()?;
     let (masks, agreement) = frame_masks(&loaded, plates, p.matte, &scene.path)?;
     loaded
@@ -508,7 +563,7 @@ fn write_outputs(
 ) -> Result<FrameRow, IngestError> {
     let (img, rgb) = (l.img, &l.rgb);
     let (w, h) = (rgb.width, rgb.height);
-    let [fx, fy, cx, cy] = img.intrinsics;
+    let [fx, fy, cx, cy] = l.intrinsics;
     let bg = p.background.map(|c| c * 255.0);
     let composite: Vec<u8> = rgb
         .data

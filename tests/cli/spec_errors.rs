@@ -265,7 +265,14 @@ fn shipped_pipeline_files_parse_with_the_builtin_stages() {
             )
             .unwrap_or_else(|e| panic!("{e}"));
             let kinds: Vec<&str> = p.stages.iter().map(|s| s.name.as_str()).collect();
-            assert_eq!(kinds, ["ingest", "init", "warmup"], "{}", path.display());
+            assert_eq!(
+                kinds,
+                [
+                    "ingest", "init", "warmup", "velocity", "material", "evaluate"
+                ],
+                "{}: from the images to a scored, learned scene",
+                path.display()
+            );
             seen += 1;
         }
     }

@@ -4,8 +4,8 @@
 //! ground-truth masks (`gt/masks/m_<cam>_<frame>.png`), the render is also compared with the
 //! capture inside the true mask: `m_gt·capture + (1 − m_gt)·backdrop`.
 
-use crate::io::image;
 use crate::io::pacnerf::{self, PacnerfError};
+use crate::io::{image, resample};
 use crate::pipeline::spec::{DatasetKind, SceneSpec};
 use crate::pipeline::stage::InputFile;
 
@@ -65,7 +65,7 @@ pub(super) fn target(
         (&f.capture.path, capture.width, capture.height),
         (&f.mask.path, mw, mh),
     ] {
-        if (w, h) != (width, height) {
+        if (w, h) != (capture.width, capture.height) || w < width || h < height {
             return Err(format!(
                 "{}: is {w}×{h}, but camera {} frame {} is {width}×{height}",
                 path.display(),
@@ -74,6 +74,18 @@ pub(super) fn target(
             ));
         }
     }
+    // `ingest.scale` made the images smaller: resample as ingest did.
+    let (w, h) = (capture.width, capture.height);
+    let binary: Vec<u8> = mask
+        .iter()
+        .map(|v| if *v >= 128 { 255 } else { 0 })
+        .collect();
+    let mask = resample::mask(&binary, w, h, width, height);
+    let capture = image::Rgb8 {
+        width,
+        height,
+        data: resample::area(&capture.data, w, h, 3, width, height),
+    };
     Ok(capture
         .data
         .chunks_exact(3)
