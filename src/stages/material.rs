@@ -46,7 +46,7 @@ pub enum MaterialModel {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Optimizer {
-    /// Gradient descent with a backtracking line search on the loss over every frame
+    /// Quasi-Newton (BFGS) descent with a backtracking line search on the loss over every frame
     /// ([`crate::physics::descent`]): each epoch one gradient and the forward rollouts of its
     /// trials; stops early once no step above `lr_final` lowers the loss.
     #[default]
@@ -194,7 +194,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 

@@ -3,7 +3,7 @@
 //! guess of its family (in free flight it barely matters).
 //!
 //! The descent starts from the velocity of the masks' visual hulls over those frames
-//! ([`crate::physics::track`], `init: hull`), then a gradient descent with a line search
+//! ([`crate::physics::track`], `init: hull`), then a quasi-Newton descent with a line search
 //! ([`crate::physics::descent`]) steps the translation (`model: translation`, 3 numbers) or the
 //! rigid motion (`model: rigid`, linear and angular velocity about the centre of mass, 6
 //! numbers; the angular one measured as the speed it gives at the object's radius) on the
@@ -168,7 +168,7 @@ pub struct VelocityResult {
 impl TypedStage for Velocity {
     type Params = VelocityParams;
     const KIND: &'static str = "velocity";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
     const DESCRIPTION: &'static str = "Learn the initial velocity from the first frames (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup"];
 

@@ -373,7 +373,7 @@ fn droplet() -> (Scene<Newtonian>, Observed, DVec3, f64) {
 
 /// PAC-NeRF's droplet: viscosity, 20 → 200 Pa·s.
 #[test]
-#[ignore = "IGNORE_DROPLET"]
+#[ignore = "several minutes: learns v0, then the viscosity through every frame"]
 fn pacnerf_droplet_viscosity() {
     let (scene, seen, v0, truth) = droplet();
     identify_pacnerf((scene, seen, v0), truth, "viscosity (Pa s)", 5e-3);

@@ -744,10 +744,10 @@ impl TypedStage for Warmup {
                 if !gtmask.is_empty() {
                     let mean = gtmask.iter().sum::<f64>() / gtmask.len() as f64;
                     means.push((format!("{set}_psnr_gtmask_mean"), mean));
-                    line += &format!(
-                        ", {mean:.2} dB against the ground-truth mask ({} views)",
-                        gtmask.len()
-                    );
+                    line += &format!(", {mean:.2} dB against the ground-truth mask");
+                    if gtmask.len() != targets.len() {
+                        line += &format!(" ({} of them)", gtmask.len());
+                    }
                 }
                 summary.push(format!("{line} ({} views)", targets.len()));
                 for (metric, value) in means {
