@@ -98,7 +98,8 @@ impl LineSearch {
         let s: Vec<f64> = u.iter().zip(&u0).map(|(a, b)| a - b).collect();
         let y: Vec<f64> = g.iter().zip(&g0).map(|(a, b)| a - b).collect();
         let sy = dot(&s, &y);
-        if !(sy > 1e-12 * dot(&s, &s).sqrt() * dot(&y, &y).sqrt()) || !sy.is_finite() {
+        let curved = sy > 1e-12 * dot(&s, &s).sqrt() * dot(&y, &y).sqrt();
+        if !curved || !sy.is_finite() {
             self.inverse_hessian.clear();
             return;
         }
@@ -289,7 +290,10 @@ mod tests {
             ]
         };
         let (u, _, _) = descend(&f, &grad, vec![-1.2, 1.0], 200);
-        assert!((u[0] - 1.0).abs() < 1e-3 && (u[1] - 1.0).abs() < 1e-3, "{u:?}");
+        assert!(
+            (u[0] - 1.0).abs() < 1e-3 && (u[1] - 1.0).abs() < 1e-3,
+            "{u:?}"
+        );
     }
 
     #[test]
@@ -299,11 +303,17 @@ mod tests {
         let grad = |u: &[f64]| vec![2.0 * u[0], 6.0 * u[1]];
         let mut u = vec![1.0, 1.0];
         for _ in 0..2 {
-            u = ls.iterate(&u, f(&u), &grad(&u), |x| Ok::<f64, ()>(f(x))).unwrap().u;
+            u = ls
+                .iterate(&u, f(&u), &grad(&u), |x| Ok::<f64, ()>(f(x)))
+                .unwrap()
+                .u;
         }
         let json = serde_json::to_string(&ls).unwrap();
         let back: LineSearch = serde_json::from_str(&json).unwrap();
         assert_eq!(back, ls);
-        assert!(!ls.inverse_hessian.is_empty(), "curvature known after two steps");
+        assert!(
+            !ls.inverse_hessian.is_empty(),
+            "curvature known after two steps"
+        );
     }
 }
