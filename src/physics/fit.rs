@@ -125,6 +125,18 @@ impl Inputs {
         targets::load(&self.ingest_dir, &rows).map_err(StageError::failed)
     }
 
+    /// The rasterizer's filter (m) in the images the canonical Gaussians were fitted to: the
+    /// training views of frame 0.
+    pub fn splat_filter(&self) -> f64 {
+        let views: Vec<&FrameRow> = self
+            .frames
+            .rows
+            .iter()
+            .filter(|r| r.role == Role::Train && r.frame == 0)
+            .collect();
+        super::object::render_filter(&views, &self.gaussians)
+    }
+
     /// The object at `material`, on a grid of `cells` across it.
     pub fn object(
         &self,
@@ -139,6 +151,7 @@ impl Inputs {
             material: material.spec(),
             frames: u32::from(self.last_frame()) + 1,
             label: PathBuf::from(format!("stages.{}", ctx.name)),
+            splat_filter: self.splat_filter(),
         };
         Object::build(&self.gaussians, &settings).map_err(StageError::failed)
     }

@@ -1,7 +1,9 @@
 //! The simulated object of a capture: its canonical Gaussians become simulation particles,
 //! as `pipe simulate` makes a 3DGS PLY one (the same [`Body`]): each Gaussian is a particle,
 //! a closed splat surface is filled with particles inside (simulated, not rendered), and the
-//! mass follows `scene.density` and the filled volume.
+//! mass follows `scene.density` and the filled volume: the solid the splats render in the
+//! images they were fitted to, so their field includes the rasterizer's low-pass filter at
+//! those images' resolution ([`render_filter`]).
 //!
 //! Floaters (Gaussians apart from the object: clusters of grid cells not touching the main
 //! one and holding under 1 % of its opacity) are dropped: a floater that stayed where it was
@@ -14,6 +16,7 @@ use std::path::{Path, PathBuf};
 use glam::{DVec3, IVec3};
 
 use crate::pipeline::spec::{BoundaryCondition, BoundaryItem, SceneSpec};
+use crate::scene::frames::FrameRow;
 use crate::scene::gaussians::{Gaussians, sh_coeffs};
 use crate::simulate::fill::Splat;
 use crate::simulate::spec::{MaterialSpec, SimSpec, family_name, fmt_num};
@@ -37,6 +40,9 @@ pub struct ObjectSettings<'a> {
     pub frames: u32,
     /// Names the source in messages (e.g. the pipeline file and stage).
     pub label: PathBuf,
+    /// The rasterizer's low-pass filter (m) in the images the Gaussians were fitted to
+    /// ([`render_filter`]); 0 for none.
+    pub splat_filter: f64,
 }
 
 /// The simulated object.
@@ -107,6 +113,7 @@ impl Object {
                     gaussians.rotation[i].map(f64::from),
                     f64::from(gaussians.opacity_logit[i]),
                 )
+                .map(|sp| sp.filtered(s.splat_filter))
             })
             .collect();
         let text = sim_yaml(&s.material, [0.0; 3], s.scene, s.frame_dt, dx, Some(true));
@@ -119,6 +126,37 @@ impl Object {
             body,
         })
     }
+}
+
+/// The low-pass filter (m) the rasterizer applied to `gaussians` in the images of the cameras
+/// `views`: 3DGS adds `eps2d` = 0.3 px² to every projected covariance, which is a 3D filter
+/// of `s = √eps2d · depth / f` about a Gaussian at `depth` (m) from a camera of focal length
+/// `f` (px); the median over the views, at the Gaussians' centroid. 0 without views or
+/// Gaussians.
+pub fn render_filter(views: &[&FrameRow], gaussians: &Gaussians) -> f64 {
+    if gaussians.is_empty() {
+        return 0.0;
+    }
+    let centroid = gaussians
+        .position
+        .iter()
+        .map(|p| DVec3::new(p[0].into(), p[1].into(), p[2].into()))
+        .sum::<DVec3>()
+        / gaussians.len() as f64;
+    let eps2d = pipe_render::RenderOptions::<f64>::default().eps2d;
+    let mut s: Vec<f64> = views
+        .iter()
+        .map(|r| {
+            let m = &r.world_from_camera;
+            let eye = DVec3::new(m[3], m[7], m[11]);
+            let axis = DVec3::new(m[2], m[6], m[10]);
+            let depth = (centroid - eye).dot(axis.normalize_or_zero());
+            eps2d.sqrt() * depth / (0.5 * (r.fx + r.fy))
+        })
+        .filter(|s| s.is_finite() && *s > 0.0)
+        .collect();
+    s.sort_by(f64::total_cmp);
+    s.get(s.len() / 2).copied().unwrap_or(0.0)
 }
 
 /// The Gaussians of the object's main body: every Gaussian in a cluster of 26-connected grid

@@ -272,7 +272,7 @@ pub fn run_with(
     };
     let splats = gaussians
         .as_ref()
-        .map_or_else(Vec::new, |g| fill_splats(g, n));
+        .map_or_else(Vec::new, |g| fill_splats(g, n, spec.splat_filter));
     let gaussians = gaussians.filter(|_| options.splats);
     let body = Body::new(&spec, particles, x0, &splats, frames)?;
     for w in &body.setup.warnings {
@@ -297,8 +297,12 @@ pub fn run_with(
     let held_total = done.stats.iter().map(|s| s.held).sum();
     let wall = started.elapsed().as_secs_f64();
     let mass = spec.material.density * setup.particle_volume;
-    let total_mass =
-        mass * n as f64 + spec.material.density * setup.fill_volume * setup.fill.len() as f64;
+    let total_mass = spec.material.density
+        * (setup
+            .input_volumes
+            .as_ref()
+            .map_or(setup.particle_volume * n as f64, |v| v.iter().sum())
+            + setup.fill_volumes.iter().sum::<f64>());
     let summary = Summary {
         pipe_version: env!("CARGO_PKG_VERSION").to_string(),
         particles_file: particles.display().to_string(),
@@ -387,9 +391,14 @@ impl Body {
                 context: format!("material from {}", spec.file.display()),
                 source,
             })?;
-        // The fillers (after the input particles) have their own volume and mass.
-        material.volume[n..].fill(setup.fill_volume);
-        material.mass[n..].fill(spec.material.density * setup.fill_volume);
+        // The volumes the filling measured: each input particle's, then the fillers'.
+        if let Some(v) = &setup.input_volumes {
+            material.volume[..n].copy_from_slice(v);
+        }
+        material.volume[n..].copy_from_slice(&setup.fill_volumes);
+        for (m, v) in material.mass.iter_mut().zip(&material.volume) {
+            *m = spec.material.density * v;
+        }
         let mut x_all = x0;
         x_all.extend_from_slice(&setup.fill);
         let mut state = State::at_rest(x_all);
@@ -431,8 +440,9 @@ impl Body {
 }
 
 /// The splats of a 3DGS PLY's `n` Gaussians (`scale_*`, `rot_*`, `opacity` beside `x y z`),
-/// for the interior filling. Records that make no splat (a zero rotation) are skipped.
-fn fill_splats(g: &Gaussians, n: usize) -> Vec<Splat> {
+/// through the rasterizer's filter `filter` (m), for the interior filling. Records that make
+/// no splat (a zero rotation) are skipped.
+fn fill_splats(g: &Gaussians, n: usize, filter: f64) -> Vec<Splat> {
     debug_assert_eq!(g.len(), n);
     let f = |v: [f32; 3]| v.map(f64::from);
     (0..g.len())
@@ -443,6 +453,7 @@ fn fill_splats(g: &Gaussians, n: usize) -> Vec<Splat> {
                 g.rotation[i].map(f64::from),
                 f64::from(g.opacity_logit[i]),
             )
+            .map(|s| s.filtered(filter))
         })
         .collect()
 }

@@ -233,11 +233,11 @@ pub struct Summary {
     pub dx_m: f64,
     /// `"file"`, `"2 x spacing"` or, for a surface-like cloud, `"largest extent / 32 ..."`.
     pub dx_source: String,
-    /// Volume of one particle (m³).
+    /// Volume of one particle (m³; the mean when the filling measured each particle's).
     pub particle_volume_m3: f64,
     /// `"file"`, `"spacing^3"` or `"the surface layer's voxels / particles"`.
     pub particle_volume_source: String,
-    /// Mass of one particle (kg) = density · volume.
+    /// Mass of one particle (kg) = density · volume (the mean, as the volume).
     pub particle_mass_kg: f64,
     /// Total mass (kg), fillers included.
     pub total_mass_kg: f64,
@@ -245,7 +245,8 @@ pub struct Summary {
     pub fill: String,
     /// Particles added inside a closed surface: simulated, not written.
     pub fill_particles: usize,
-    /// Volume of one filler particle (m³; 0 without fillers).
+    /// Volume of a whole filler particle, the filling's voxel (m³; 0 without fillers); those
+    /// next to the surface have half of it.
     pub fill_particle_volume_m3: f64,
     /// The file's domain (m), whose walls hold the particles that reach it; `null` when the
     /// grid follows the particles (see `frame_stats[].grid`).

@@ -7,8 +7,9 @@
 //! - a *surface-like* cloud (no cell of the density measure lies inside it: 3DGS splats, a
 //!   scanned surface) has no volume density: `grid_dx` = its largest extent / 24
 //!   ([`SURFACE_CELLS_ACROSS`]), it is filled with particles when closed ([`super::fill`];
-//!   `fill_interior` in the file forces or forbids it), and its particles share the volume of
-//!   the surface layer the filling measured;
+//!   `fill_interior` in the file forces or forbids it), and its particles get the volumes the
+//!   filling measured (3DGS splats: the solid's voxels they lie in; points: their wall's
+//!   volume, shared evenly); a floor closes it underneath when it rests on a ground plane;
 //! - no domain: the grid follows the particles (`pipe_mpm::Domain::Follow`): each substep's
 //!   grid covers their box plus the stencil margin, so nothing but the declared boundaries
 //!   acts on them, at most [`FOLLOW_NODES`] nodes (a run whose particles spread wider stops
@@ -26,7 +27,7 @@ use glam::DVec3;
 use pipe_mpm::{Aabb, Collider, FOLLOW_MAX_NODES, MAX_GRID_NODES, ParticleForce};
 
 use super::SimulateError;
-use super::fill::{MAX_FILL_VOXELS, Splat, down_axis, fill_interior};
+use super::fill::{Floor, MAX_FILL_VOXELS, Splat, down_axis, fill_interior};
 use super::spec::{BoundarySpec, BoxSpec, ForceSpec, ParticleSet, SimSpec, fmt_num, short_number};
 use crate::scene::neighbors::{Spacing, bounds, particle_spacing};
 
@@ -53,14 +54,19 @@ pub struct Setup {
     pub dx: f64,
     /// `"file"` or `"2 x spacing"`.
     pub dx_source: String,
-    /// Particle volume (m³).
+    /// Particle volume (m³); their mean when `input_volumes` are given.
     pub particle_volume: f64,
-    /// `"file"`, `"spacing^3"` or how the surface layer gave it.
+    /// `"file"`, `"spacing^3"` or how the filling gave it.
     pub volume_source: String,
+    /// Each input particle's volume (m³) when the filling measured them; `None`: all
+    /// `particle_volume`.
+    pub input_volumes: Option<Vec<f64>>,
     /// Particles added inside a closed surface (m), simulated after the input ones, not written.
     pub fill: Vec<DVec3>,
-    /// Volume of one filler particle (m³).
+    /// Volume of a whole filler particle, the filling's voxel (m³).
     pub fill_volume: f64,
+    /// Each filler's volume (m³): `fill_volume`, or half of it next to the surface.
+    pub fill_volumes: Vec<f64>,
     /// What the filling did, for the summary (`"off"`, `"no: the cloud is volumetric"`, ...).
     pub fill_source: String,
     /// The file's domain (m): a fixed grid with walls; `None`: the grid follows the particles.
@@ -124,8 +130,8 @@ pub fn setup(
     };
     let fill_wanted = spec.fill_interior.unwrap_or(surface_like);
     let voxels = if fill_wanted || (surface_like && spec.particle_volume.is_none()) {
-        let down = down_axis(DVec3::from_array(spec.gravity));
-        let f = fill_interior(x0, splats, 0.5 * dx, down, MAX_FILL_VOXELS);
+        let floor = ground_under(spec, x0);
+        let f = fill_interior(x0, splats, 0.5 * dx, floor, MAX_FILL_VOXELS);
         if f.is_none() {
             warnings.push(format!(
                 "the interior was not measured nor filled: the particles' box needs more than \
@@ -137,7 +143,12 @@ pub fn setup(
     } else {
         None
     };
-    let closed = voxels.as_ref().is_some_and(|f| !f.points.is_empty());
+    // Splats always have a solid (their field's wall and what it encloses); points only when
+    // their surface encloses something.
+    let splat_solid = !splats.is_empty();
+    let closed = voxels
+        .as_ref()
+        .is_some_and(|f| splat_solid || (f.enclosed_voxels > 0 && !f.points.is_empty()));
     let fill_source = match (&voxels, fill_wanted, closed) {
         (_, false, _) if spec.fill_interior == Some(false) => "off (file)".to_string(),
         (_, false, _) => "no: the cloud is volumetric".to_string(),
@@ -154,9 +165,15 @@ pub fn setup(
         }
         (Some(_), true, false) => "no: nothing enclosed (a solid or an open surface)".to_string(),
         (Some(f), true, true) => format!(
-            "{} particle(s) inside the closed surface, on a {} m lattice ({})",
+            "{} particle(s) inside the {}, on a {} m lattice, solid {} m^3 ({})",
             f.points.len(),
+            if splat_solid {
+                "splats' solid"
+            } else {
+                "closed surface"
+            },
             short_number(f.voxel),
+            short_number(f.solid_volume()),
             if spec.fill_interior == Some(true) {
                 "file"
             } else {
@@ -172,15 +189,24 @@ pub fn setup(
             short_number(dx)
         ));
     }
-    let (particle_volume, volume_source) = match (spec.particle_volume, spacing, &voxels) {
-        (Some(v), _, _) => (v, "file".to_string()),
-        (None, Some(_), Some(f)) if surface_like => (
-            f.surface_volume() / x0.len() as f64,
-            "the surface layer's voxels / particles".to_string(),
-        ),
-        (None, Some(sp), _) => (sp.spacing.powi(3), "spacing^3".to_string()),
-        (None, None, _) => unreachable!("spacing is measured when particle_volume is missing"),
-    };
+    let (particle_volume, volume_source, input_volumes) =
+        match (spec.particle_volume, spacing, &voxels) {
+            (Some(v), _, _) => (v, "file".to_string(), None),
+            (None, _, Some(f)) if (fill_wanted && closed) || surface_like => (
+                f.input_volume() / x0.len() as f64,
+                if splat_solid {
+                    "the solid's voxels each splat lies in (mean)"
+                } else {
+                    "the surface layer's voxels / particles"
+                }
+                .to_string(),
+                Some(f.input_volumes.clone()),
+            ),
+            (None, Some(sp), _) => (sp.spacing.powi(3), "spacing^3".to_string(), None),
+            (None, None, _) => {
+                unreachable!("spacing is measured when particle_volume is missing")
+            }
+        };
     warnings.extend(size_warnings(
         spec,
         spacing.filter(|_| !surface_like),
@@ -189,12 +215,12 @@ pub fn setup(
         x0.len(),
     ));
     warnings.extend(particles_inside_boundaries(&spec.boundaries, x0, dx));
-    let (fill, fill_volume) = match voxels {
+    let (fill, fill_volume, fill_volumes) = match voxels {
         Some(f) if fill_wanted && closed => {
             let v = f.filler_volume();
-            (f.points, v)
+            (f.points, v, f.filler_volumes)
         }
-        _ => (Vec::new(), 0.0),
+        _ => (Vec::new(), 0.0, Vec::new()),
     };
     let colliders: Vec<Collider> = spec
         .boundaries
@@ -268,8 +294,10 @@ pub fn setup(
         dx_source,
         particle_volume,
         volume_source,
+        input_volumes,
         fill,
         fill_volume,
+        fill_volumes,
         fill_source,
         domain,
         domain_source,
@@ -277,6 +305,37 @@ pub fn setup(
         forces,
         warnings,
     })
+}
+
+/// The ground plane the particles `x0` (m) may rest on: the boundary plane facing up against
+/// gravity (a `ground`, or a `half_space` whose normal is that axis) nearest their lowest
+/// point; the filling lays a floor on it only when the object is that close to it.
+fn ground_under(spec: &SimSpec, x0: &[DVec3]) -> Option<Floor> {
+    let (axis, negative) = down_axis(DVec3::from_array(spec.gravity))?;
+    let up = if negative { 1.0 } else { -1.0 };
+    let lowest = x0
+        .iter()
+        .map(|p| up * p[axis])
+        .fold(f64::INFINITY, f64::min);
+    spec.boundaries
+        .iter()
+        .filter_map(|b| {
+            let (point, normal) = match *b {
+                BoundarySpec::Ground { y, .. } => (DVec3::new(0.0, y, 0.0), DVec3::Y),
+                BoundarySpec::HalfSpace { point, normal, .. } => {
+                    (DVec3::from_array(point), DVec3::from_array(normal))
+                }
+                BoundarySpec::Box { .. } => return None,
+            };
+            // A plane across the down axis, its free side up.
+            let facing = up * normal[axis] / normal.length();
+            (facing > 0.999).then_some(up * point[axis])
+        })
+        .min_by(|a, b| (a - lowest).abs().total_cmp(&(b - lowest).abs()))
+        .map(|level| Floor {
+            down: (axis, negative),
+            level: up * level,
+        })
 }
 
 /// Warnings for a `grid_dx` or `particle_volume` from the file that the measured `spacing` of a

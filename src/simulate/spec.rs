@@ -28,7 +28,9 @@
 //! Other keys: `domain: {min: [..], max: [..]}` (m; default: see [`super::setup`]),
 //! `substeps` (a fixed count per frame; refused above the stability limit unless
 //! `allow_unstable: true`), `fill_interior` (`true`/`false`; default: fill when the cloud is
-//! surface-like, e.g. 3DGS splats, see [`super::fill`]), and
+//! surface-like, e.g. 3DGS splats, see [`super::fill`]), `splat_filter` (m, ≥ 0; default 0:
+//! the rasterizer's low-pass filter in the images a 3DGS PLY was fitted to, `√0.3 · depth /
+//! focal`, added to every splat when the filling measures the surface they render), and
 //! `boundaries:` items `{kind: ground, y, condition}`, `{kind: half_space, point, normal,
 //! condition}` (normal points into the free side), `{kind: box, min, max, condition}`
 //! (`condition` defaults to `sticky`, ground `y` to 0), and `forces:` items
@@ -257,6 +259,8 @@ pub struct SimSpec {
     pub allow_unstable: bool,
     /// Fill a closed surface with particles; `None` = when the cloud is surface-like.
     pub fill_interior: Option<bool>,
+    /// The rasterizer's filter (m) in the images a 3DGS input was fitted to (0: none).
+    pub splat_filter: f64,
     /// External forces and impulses.
     pub forces: Vec<ForceSpec>,
     positions: Positions,
@@ -297,6 +301,12 @@ impl SimSpec {
             .particle_volume
             .map(|v| ctx.positive("particle_volume", v, "m^3"))
             .transpose()?;
+        let splat_filter = match raw.splat_filter {
+            Some(v) if !(v.is_finite() && v >= 0.0) => {
+                return Err(ctx.bad("splat_filter", &fmt_num(v), "must be >= 0 (m)"));
+            }
+            v => v.unwrap_or(0.0),
+        };
         let substeps = match raw.substeps {
             None => None,
             Some(n) if (1..=10_000_000).contains(&n) => Some(n as u32),
@@ -334,6 +344,7 @@ impl SimSpec {
             substeps,
             allow_unstable: raw.allow_unstable,
             fill_interior: raw.fill_interior,
+            splat_filter,
             forces,
             positions,
         })
@@ -461,6 +472,8 @@ struct RawSpec {
     allow_unstable: bool,
     #[serde(default)]
     fill_interior: Option<bool>,
+    #[serde(default)]
+    splat_filter: Option<f64>,
     #[serde(default)]
     forces: Vec<Value>,
 }
@@ -1051,6 +1064,20 @@ forces:
                 ..
             }
         ));
+    }
+
+    #[test]
+    fn the_splat_filter_is_a_length() {
+        assert_eq!(parse(EXAMPLE).unwrap().splat_filter, 0.0);
+        let s = parse(&format!("{EXAMPLE}splat_filter: 0.006\n")).unwrap();
+        assert_eq!(s.splat_filter, 0.006);
+        let e = parse(&format!("{EXAMPLE}splat_filter: -0.001\n")).unwrap_err();
+        assert!(
+            e.contains("`splat_filter`") && e.contains(">= 0 (m)"),
+            "{e}"
+        );
+        let e = parse(&format!("{EXAMPLE}splat_filter: .nan\n")).unwrap_err();
+        assert!(e.contains("non-finite") && e.contains("line 13"), "{e}");
     }
 
     #[test]

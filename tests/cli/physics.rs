@@ -174,6 +174,7 @@ fn object() -> Object {
             material: material.spec(),
             frames: 3,
             label: PathBuf::from("tiny"),
+            splat_filter: 0.0,
         },
     )
     .unwrap();
