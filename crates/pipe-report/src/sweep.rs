@@ -157,6 +157,18 @@ fn error_names(sweep: &SweepSummary) -> Vec<String> {
     names.into_iter().collect()
 }
 
+/// Axis label of a parameter error, with what `evaluate` measures.
+fn error_label(name: &str) -> String {
+    match name {
+        "E" | "yield_stress" | "viscosity" | "bulk_modulus" => {
+            format!("error of {name}: |Δlog10| (decades)")
+        }
+        "v0_m_s" => "error of v0: |Δv0| (m/s)".into(),
+        "friction_angle" => "error of the friction angle: |Δ| (deg)".into(),
+        other => format!("error of {other}: |Δ|"),
+    }
+}
+
 /// The Pareto figures: wall time against test PSNR, and against each parameter error.
 pub fn figures(sweep: &SweepSummary) -> Vec<(String, Figure)> {
     let v = &sweep.variants;
@@ -208,7 +220,7 @@ pub fn figures(sweep: &SweepSummary) -> Vec<(String, Figure)> {
         out.push(figure(
             format!("pareto_error_{n}"),
             format!("{}: wall time against the error of {n}", sweep.name),
-            format!("error of {n}"),
+            error_label(&n),
             v.iter()
                 .map(|r| score(&r.evaluation, &["errors", &n]))
                 .collect(),

@@ -486,6 +486,7 @@ window.addEventListener('load', function () {
             "--virtual-time-budget=5000",
             "--dump-dom",
         ])
+        .arg(format!("--user-data-dir={}", dir.join("profile").display()))
         .arg(format!("file://{}", file.display()))
         .output()
         .unwrap();
@@ -555,6 +556,10 @@ fn the_report_opens_in_headless_chromium_with_everything_and_no_request() {
             "--hide-scrollbars",
             "--window-size=1200,2400",
         ])
+        .arg(format!(
+            "--user-data-dir={}",
+            tmp.path().join("profile").display()
+        ))
         .arg(format!("--screenshot={}", shot.display()))
         .arg(format!("file://{}", d.path("auto/report.html").display()))
         .output()
