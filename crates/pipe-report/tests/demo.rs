@@ -577,3 +577,62 @@ fn the_report_opens_in_headless_chromium_with_everything_and_no_request() {
         std::fs::copy(&shot, keep).unwrap();
     }
 }
+
+#[test]
+fn a_report_of_a_pipeline_that_never_ran_says_to_run_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = pipeline(dir.path(), "never-ran", 0.1);
+    let reg = pipe::stages::builtin();
+    let p = pipe::pipeline::spec::load(&file, &reg, &Default::default()).unwrap();
+    let ws = pipe::pipeline::runner::Workspace::new(dir.path());
+    let e = pipe::report::collect(&ws, &p, &reg, &dir.path().join("images"), "")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("never-ran.yaml") && e.contains("pipe run"),
+        "{e}"
+    );
+    let code = pipe::cli::run_with(
+        [
+            "pipe",
+            "--quiet",
+            "--workdir",
+            dir.path().to_str().unwrap(),
+            "report",
+            file.to_str().unwrap(),
+            "--out",
+            dir.path().join("r").to_str().unwrap(),
+        ],
+        pipe::stages::builtin(),
+        Some(&Documents),
+    );
+    assert_eq!(code, 1);
+    assert!(!dir.path().join("r/report.html").exists());
+}
+
+#[test]
+fn a_bad_variant_stops_the_sweep_before_anything_runs() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = pipeline(dir.path(), "bad-variant", 0.1);
+    let run = |over: &str| {
+        pipe::cli::run_with(
+            [
+                "pipe",
+                "--quiet",
+                "--workdir",
+                dir.path().to_str().unwrap(),
+                "sweep",
+                file.to_str().unwrap(),
+                "--over",
+                over,
+            ],
+            pipe::stages::builtin(),
+            Some(&Documents),
+        )
+    };
+    // The second variant's `material.epochs: 0` is refused while planning.
+    assert_eq!(run("material.epochs=1,0"), 2);
+    // A malformed axis is a usage error.
+    assert_eq!(run("material.epochs"), 2);
+    assert!(!dir.path().join(".pipe/cache").exists());
+}
