@@ -12,7 +12,9 @@ use crate::pipeline::progress::Reporter;
 use crate::pipeline::runner::{RunError, RunOptions, StageState, Workspace, short};
 use crate::pipeline::spec::{self, Overrides, Preset};
 use crate::pipeline::stage::Registry;
+use crate::report::RunSummary;
 use crate::simulate::spec::short_number;
+use crate::sweep::SweepSummary;
 
 /// pipe: multi-view videos of a deforming object → an editable, physics-driven 3D scene.
 #[derive(Debug, Parser)]
@@ -58,6 +60,41 @@ enum Command {
         /// Re-run this stage even if cached (repeatable).
         #[arg(long, value_name = "STAGE")]
         force: Vec<String>,
+        /// Do not write the report after a run that ran `evaluate`.
+        #[arg(long)]
+        no_report: bool,
+        /// Where the report after `evaluate` goes; default: `reports/<pipeline name>`.
+        #[arg(long, value_name = "DIR")]
+        report_out: Option<PathBuf>,
+    },
+    /// Write report.html (self-contained), report.md and report.json of one or more pipeline
+    /// files' cached results (several files: side by side).
+    Report {
+        /// The pipeline files (YAML).
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        /// Use this preset instead of the files' (draft | standard | paper).
+        #[arg(long, value_parser = parse_preset)]
+        preset: Option<Preset>,
+        /// Override a parameter of every file: `--set stage.key=value` (repeatable).
+        #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
+        sets: Vec<String>,
+        /// Output folder; default: `reports/<name>` (`reports/<name>+<name>…` for several).
+        #[arg(long, value_name = "DIR")]
+        out: Option<PathBuf>,
+    },
+    /// Run every combination of parameter values (sharing cached stages) and write
+    /// sweep.parquet, sweep.md and Pareto plots of wall time against PSNR and parameter error.
+    Sweep {
+        #[command(flatten)]
+        pipeline: PipelineArgs,
+        /// `stage.key=v1,v2,...` or `preset=draft,standard` (repeatable: the grid is the
+        /// product of all of them).
+        #[arg(long = "over", value_name = "KEY=V1,V2,...", required = true, value_parser = parse_axis)]
+        over: Vec<crate::sweep::Axis>,
+        /// Output folder; default: `sweeps/<pipeline name>`.
+        #[arg(long, value_name = "DIR")]
+        out: Option<PathBuf>,
     },
     /// One line per stage: cached, stale (and why) or not run.
     Status {
@@ -165,6 +202,10 @@ fn parse_preset(s: &str) -> Result<Preset, String> {
         .ok_or_else(|| format!("unknown preset `{s}`; expected draft, standard or paper"))
 }
 
+fn parse_axis(s: &str) -> Result<crate::sweep::Axis, String> {
+    crate::sweep::Axis::parse(s)
+}
+
 /// `WxH` (or `W×H`) in pixels, both at least 1.
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let bad = || format!("expected WIDTHxHEIGHT in pixels like `160x120`, found `{s}`");
@@ -194,7 +235,17 @@ fn install_interrupt_handler() {
     });
 }
 
-/// Run the CLI with `args` against the stages of `registry`.
+/// Writes the documents of `pipe report` and `pipe sweep`. The `pipe` binary plugs in the
+/// `pipe-report` crate (polars, plots, HTML); this library never links it.
+pub trait Publisher: Sync {
+    /// Write report.html, report.md and report.json of `runs` (side by side) into `out`;
+    /// returns the files written.
+    fn report(&self, runs: &[RunSummary], out: &Path) -> Result<Vec<PathBuf>, String>;
+    /// Write sweep.parquet, sweep.md and the Pareto plots of `sweep` into `out`.
+    fn sweep(&self, sweep: &SweepSummary, out: &Path) -> Result<Vec<PathBuf>, String>;
+}
+
+/// Run the CLI with `args` against the stages of `registry` (no `report`/`sweep` writer).
 pub fn main(
     args: impl IntoIterator<Item = impl Into<OsString> + Clone>,
     registry: Registry,
@@ -202,8 +253,26 @@ pub fn main(
     ExitCode::from(run(args, registry))
 }
 
+/// Like [`main`], with the writer of `pipe report` and `pipe sweep`.
+pub fn main_with(
+    args: impl IntoIterator<Item = impl Into<OsString> + Clone>,
+    registry: Registry,
+    publisher: &dyn Publisher,
+) -> ExitCode {
+    ExitCode::from(run_with(args, registry, Some(publisher)))
+}
+
 /// Like [`main`], returning the exit status as a number.
 pub fn run(args: impl IntoIterator<Item = impl Into<OsString> + Clone>, registry: Registry) -> u8 {
+    run_with(args, registry, None)
+}
+
+/// Like [`main_with`], returning the exit status as a number.
+pub fn run_with(
+    args: impl IntoIterator<Item = impl Into<OsString> + Clone>,
+    registry: Registry,
+    publisher: Option<&dyn Publisher>,
+) -> u8 {
     let cli = match Cli::try_parse_from(args) {
         Ok(c) => c,
         Err(e) => {
@@ -220,7 +289,7 @@ pub fn run(args: impl IntoIterator<Item = impl Into<OsString> + Clone>, registry
     let ws = Workspace::new(&workdir);
     // Run on a worker of the pool: parallel kernels started from a thread outside the pool
     // hand over and sleep until done, a futex round trip per kernel call.
-    match rayon::scope(|_| execute(&cli, &ws, &registry)) {
+    match rayon::scope(|_| execute(&cli, &ws, &registry, publisher)) {
         Ok(()) => 0,
         Err(e) => {
             eprintln!("error: {e}");
@@ -248,13 +317,55 @@ fn load(args: &PipelineArgs, registry: &Registry) -> Result<spec::Pipeline, RunE
     Ok(spec::load(&args.file, registry, &overrides)?)
 }
 
-fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunError> {
+fn no_publisher() -> RunError {
+    RunError::Usage(
+        "this build has no report writer: `report` and `sweep` are commands of the `pipe` binary"
+            .into(),
+    )
+}
+
+/// `reports/<name>` or, for several runs, `reports/<name>+<name>…`.
+fn default_report_dir(names: &[String]) -> PathBuf {
+    PathBuf::from("reports").join(names.join("+"))
+}
+
+/// Collect `pipelines`' results and write their report into `out`.
+fn write_report(
+    ws: &Workspace,
+    registry: &Registry,
+    publisher: &dyn Publisher,
+    pipelines: &[spec::Pipeline],
+    out: &Path,
+) -> Result<Vec<PathBuf>, RunError> {
+    let images = out.join("images");
+    let mut runs = Vec::new();
+    for (i, p) in pipelines.iter().enumerate() {
+        let prefix = if pipelines.len() > 1 {
+            format!("{}_", i + 1)
+        } else {
+            String::new()
+        };
+        runs.push(crate::report::collect(ws, p, registry, &images, &prefix)?);
+    }
+    publisher
+        .report(&runs, out)
+        .map_err(|e| RunError::Output(format!("writing the report into {}: {e}", out.display())))
+}
+
+fn execute(
+    cli: &Cli,
+    ws: &Workspace,
+    registry: &Registry,
+    publisher: Option<&dyn Publisher>,
+) -> Result<(), RunError> {
     match &cli.command {
         Command::Run {
             pipeline,
             from,
             until,
             force,
+            no_report,
+            report_out,
         } => {
             let p = load(pipeline, registry)?;
             install_interrupt_handler();
@@ -277,6 +388,74 @@ fn execute(cli: &Cli, ws: &Workspace, registry: &Registry) -> Result<(), RunErro
                     .filter(|(_, _, o)| *o == crate::pipeline::runner::Outcome::Cached)
                     .count(),
                 ws.store.cache_dir().display()
+            );
+            // The report follows a run that evaluated (ran `evaluate`, not only found it cached).
+            let evaluated = report.stages.iter().any(|(name, _, o)| {
+                matches!(o, crate::pipeline::runner::Outcome::Ran { .. })
+                    && registry.get(name).is_some_and(|s| s.kind() == "evaluate")
+            });
+            if let (true, false, Some(publisher)) = (evaluated, *no_report, publisher) {
+                let out = report_out
+                    .clone()
+                    .unwrap_or_else(|| default_report_dir(std::slice::from_ref(&p.name)));
+                let written =
+                    write_report(ws, registry, publisher, std::slice::from_ref(&p), &out)?;
+                println!("report: {}", files_line(&written));
+            }
+            Ok(())
+        }
+        Command::Report {
+            files,
+            preset,
+            sets,
+            out,
+        } => {
+            let publisher = publisher.ok_or_else(no_publisher)?;
+            let overrides = Overrides {
+                preset: *preset,
+                sets: sets.clone(),
+            };
+            let pipelines = files
+                .iter()
+                .map(|f| spec::load(f, registry, &overrides))
+                .collect::<Result<Vec<_>, _>>()?;
+            let names: Vec<String> = pipelines.iter().map(|p| p.name.clone()).collect();
+            let out = out.clone().unwrap_or_else(|| default_report_dir(&names));
+            let written = write_report(ws, registry, publisher, &pipelines, &out)?;
+            println!("report: {}", files_line(&written));
+            Ok(())
+        }
+        Command::Sweep {
+            pipeline,
+            over,
+            out,
+        } => {
+            let publisher = publisher.ok_or_else(no_publisher)?;
+            let request = crate::sweep::SweepRequest {
+                file: pipeline.file.clone(),
+                base: Overrides {
+                    preset: pipeline.preset,
+                    sets: pipeline.sets.clone(),
+                },
+                axes: over.clone(),
+            };
+            install_interrupt_handler();
+            let reporter = Reporter::auto(cli.quiet);
+            let command = std::env::args().collect::<Vec<_>>().join(" ");
+            let summary =
+                crate::sweep::run(ws, registry, &request, &reporter, &INTERRUPTED, &command)?;
+            let out = out
+                .clone()
+                .unwrap_or_else(|| PathBuf::from("sweeps").join(&summary.name));
+            let written = publisher.sweep(&summary, &out).map_err(|e| {
+                RunError::Output(format!("writing the sweep into {}: {e}", out.display()))
+            })?;
+            println!(
+                "{}: {} variant(s), {} stage run(s); {}",
+                summary.name,
+                summary.variants.len(),
+                summary.variants.iter().map(|v| v.ran.len()).sum::<usize>(),
+                files_line(&written)
             );
             Ok(())
         }
@@ -480,6 +659,15 @@ fn checkpoint_note(ws: &Workspace, name: &str, key: &str, sep: &str) -> String {
             )
         }
     }
+}
+
+/// The files' paths, comma-separated.
+fn files_line(files: &[PathBuf]) -> String {
+    files
+        .iter()
+        .map(|f| f.display().to_string())
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 fn display_dir(p: &Path) -> String {

@@ -11,6 +11,8 @@ pub mod io;
 pub mod physics;
 pub mod pipeline;
 pub mod preview;
+pub mod report;
 pub mod scene;
 pub mod simulate;
 pub mod stages;
+pub mod sweep;

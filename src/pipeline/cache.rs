@@ -96,7 +96,8 @@ pub struct Manifest {
     pub outputs: BTreeMap<String, OutputFile>,
     /// Wall-clock time of the stage, seconds (summed over the runs of a resumed stage).
     pub wall_s: f64,
-    /// Peak resident memory of the process at the end of the stage, bytes (0 if unknown).
+    /// Peak resident memory of the process while the stage ran (Linux `VmHWM`, reset when the
+    /// stage starts), bytes (0 if unknown).
     pub peak_rss_bytes: u64,
     /// `pipe` crate version that wrote it.
     pub pipe_version: String,
@@ -404,7 +405,15 @@ impl StatCache {
     }
 }
 
-/// Peak resident set size of this process so far, bytes (Linux `VmHWM`; 0 elsewhere).
+/// Reset the process's peak resident set size to its current size (Linux: `5` written to
+/// `/proc/self/clear_refs`), so [`peak_rss_bytes`] then gives the peak since this call.
+/// Best effort: where the file cannot be written, the peak stays the process's since start.
+pub fn reset_peak_rss() {
+    let _ = fs::write("/proc/self/clear_refs", "5");
+}
+
+/// Peak resident set size of this process, bytes, since it started or since the last
+/// [`reset_peak_rss`] (Linux `VmHWM`; 0 elsewhere).
 pub fn peak_rss_bytes() -> u64 {
     fs::read_to_string("/proc/self/status")
         .ok()

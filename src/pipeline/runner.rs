@@ -189,6 +189,22 @@ impl Workspace {
             .map_err(|source| cache::CacheError::Io { path: p, source })
     }
 
+    /// Keep a copy of `pipeline_file`'s last-run record under `tag` (a sweep's variant), so
+    /// `pipe clean` keeps the entries of every variant while the file exists, not only the
+    /// last one's.
+    pub fn pin_record(&self, pipeline_file: &Path, tag: &str) -> Result<(), cache::CacheError> {
+        let record = self.record(pipeline_file);
+        let base = self.record_path(pipeline_file);
+        let stem = base
+            .file_stem()
+            .map(|s| s.to_string_lossy().to_string())
+            .unwrap_or_default();
+        let h = blake3::hash(tag.as_bytes()).to_hex();
+        let p = base.with_file_name(format!("{stem}-{}.json", &h[..16]));
+        cache::write_atomic(&p, &serde_json::to_vec_pretty(&record).expect("serialises"))
+            .map_err(|source| cache::CacheError::Io { path: p, source })
+    }
+
     /// All last-run records in this work directory.
     pub fn records(&self) -> Vec<RunRecord> {
         let dir = self.store.root().join("runs");
@@ -376,6 +392,8 @@ impl Workspace {
             let spec = pipeline.stage(&p.name).expect("validated");
             let inputs = &p.inputs;
             let tmp = self.store.begin(&p.name, &p.key)?;
+            // The manifest's peak memory is this stage's, not the process's so far.
+            cache::reset_peak_rss();
             let start = Instant::now();
             let checkpoints = self.checkpoints(&p.name, &p.key);
             let mut ctx = StageContext::new(

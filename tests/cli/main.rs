@@ -1,6 +1,7 @@
 //! Integration tests of the `pipe` library and CLI (one test binary, one module per area).
 
 mod deformed_render;
+mod deps;
 mod formats;
 mod ingest;
 mod init;
