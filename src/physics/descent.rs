@@ -12,6 +12,10 @@
 //! Before any curvature is known (the first iteration, or after a step that does not bend the
 //! right way), the step is steepest descent `d = −g / max_k |g_k|` with the remembered step
 //! length `step` (the steepest coordinate moves by `step`), doubled after an accepted trial.
+//! When no trial along the quasi-Newton direction lowers the loss, or the direction is shorter
+//! than `min_step` (a curvature estimate gone stale, as on a plasticine's flat valley in E),
+//! the same iteration falls back to steepest descent from the last steepest step length: only
+//! steepest descent declares convergence, never the estimate alone.
 //! The descent has converged when no move above `min_step` (in any coordinate) lowers the loss.
 //! The optimiser's coordinates are comparable: log10 of moduli, logits of bounded ratios.
 
@@ -43,6 +47,10 @@ pub struct LineSearch {
     /// The point and gradient of the previous iteration (for the next update).
     #[serde(default)]
     pub previous: Option<(Vec<f64>, Vec<f64>)>,
+    /// The steepest-descent step length to fall back to when a quasi-Newton step fails
+    /// (`None`: `step`).
+    #[serde(default)]
+    pub steepest_step: Option<f64>,
 }
 
 /// What an iteration did.
@@ -76,6 +84,7 @@ impl LineSearch {
             max_step,
             inverse_hessian: Vec::new(),
             previous: None,
+            steepest_step: None,
         }
     }
 
@@ -157,46 +166,94 @@ impl LineSearch {
                     .collect::<Vec<f64>>()
             })
             .filter(|d| dot(d, g) < 0.0 && d.iter().all(|v| v.is_finite()));
-        let (d, mut t, quasi_newton) = match newton {
-            Some(d) => {
-                let m = max_abs(&d);
-                (d, (self.max_step / m).min(1.0), true)
+        let steepest: Vec<f64> = g.iter().map(|v| -v / scale).collect();
+        let mut trials = 0;
+        if let Some(d) = newton {
+            let t = (self.max_step / max_abs(&d)).min(1.0);
+            match Self::search(u, l0, g, &d, t, self.min_step, &mut trials, &mut loss)? {
+                Search::Accepted(it) => {
+                    self.step = it.step.max(self.min_step);
+                    return Ok(it);
+                }
+                // The model's minimum is closer than `min_step`, or no trial along the model's
+                // direction lowered the loss: either way the estimate is not trusted alone
+                // (it may be stale); steepest descent decides.
+                Search::TooShort(_) | Search::Failed(_) => {
+                    self.inverse_hessian.clear();
+                    self.step = self.steepest_step.unwrap_or(self.step).max(self.min_step);
+                }
             }
-            None => {
-                self.inverse_hessian.clear();
-                (g.iter().map(|v| -v / scale).collect(), self.step, false)
+        } else {
+            self.inverse_hessian.clear();
+        }
+        let t = self.step;
+        match Self::search(
+            u,
+            l0,
+            g,
+            &steepest,
+            t,
+            self.min_step,
+            &mut trials,
+            &mut loss,
+        )? {
+            Search::Accepted(it) => {
+                self.step = (2.0 * it.step).min(self.max_step);
+                self.steepest_step = Some(self.step);
+                Ok(it)
             }
-        };
-        let largest = max_abs(&d);
-        let slope = dot(g, &d);
-        for trial in 1..=TRIALS {
-            let moved = t * largest;
-            if moved < self.min_step {
+            Search::TooShort(moved) | Search::Failed(moved) => {
+                // Nothing lowered the loss: go on from a shorter steepest step.
                 self.step = moved;
-                return Ok(stay(trial - 1));
+                self.steepest_step = Some(moved);
+                Ok(stay(trials))
             }
-            let at: Vec<f64> = u.iter().zip(&d).map(|(u, d)| u + t * d).collect();
+        }
+    }
+
+    /// Backtracking along `d` from `t` (halving, at most [`TRIALS`] losses): the first trial
+    /// meeting Armijo's condition, or why none did (the move fell below `min_step`, or every
+    /// trial failed; both with the next move to try).
+    #[allow(clippy::too_many_arguments)]
+    fn search<E>(
+        u: &[f64],
+        l0: f64,
+        g: &[f64],
+        d: &[f64],
+        mut t: f64,
+        min_step: f64,
+        trials: &mut usize,
+        loss: &mut impl FnMut(&[f64]) -> Result<f64, E>,
+    ) -> Result<Search, E> {
+        let largest = max_abs(d);
+        let slope = dot(g, d);
+        for _ in 0..TRIALS {
+            let moved = t * largest;
+            if moved < min_step {
+                return Ok(Search::TooShort(moved));
+            }
+            let at: Vec<f64> = u.iter().zip(d).map(|(u, d)| u + t * d).collect();
             let l = loss(&at)?;
+            *trials += 1;
             if l.is_finite() && l <= l0 + ARMIJO * t * slope {
-                self.step = if quasi_newton {
-                    moved.max(self.min_step)
-                } else {
-                    (2.0 * t).min(self.max_step)
-                };
-                return Ok(Iteration {
+                return Ok(Search::Accepted(Iteration {
                     u: at,
                     loss: l,
                     step: moved,
-                    trials: trial,
-                });
+                    trials: *trials,
+                }));
             }
             t /= 2.0;
         }
-        // Nothing lowered the loss: forget the curvature, go on from a shorter steepest step.
-        self.inverse_hessian.clear();
-        self.step = t * largest;
-        Ok(stay(TRIALS))
+        Ok(Search::Failed(t * largest))
     }
+}
+
+/// How a backtracking search ended.
+enum Search {
+    Accepted(Iteration),
+    TooShort(f64),
+    Failed(f64),
 }
 
 #[cfg(test)]
@@ -294,6 +351,26 @@ mod tests {
             (u[0] - 1.0).abs() < 1e-3 && (u[1] - 1.0).abs() < 1e-3,
             "{u:?}"
         );
+    }
+
+    #[test]
+    fn a_stale_curvature_estimate_falls_back_to_steepest_descent() {
+        // L = 100 u0² + u1² from (1, 0): an estimate H = I promises a step of 200 in u0, capped
+        // at 20; the four halvings (20, 10, 5, 2.5) all overshoot. The same iteration then
+        // takes the steepest step (0.5 in u0) and lowers the loss instead of giving up.
+        let f = |u: &[f64]| 100.0 * u[0] * u[0] + u[1] * u[1];
+        let g = vec![200.0, 0.0];
+        let mut ls = LineSearch::new(0.5, 1e-4, 20.0);
+        ls.inverse_hessian = vec![1.0, 0.0, 0.0, 1.0];
+        let u = vec![1.0, 0.0];
+        let it = ls.iterate(&u, f(&u), &g, |x| Ok::<f64, ()>(f(x))).unwrap();
+        assert!(it.loss < f(&u) / 2.0, "{it:?}");
+        assert_eq!(it.trials, TRIALS + 1, "{it:?}");
+        assert!(
+            ls.inverse_hessian.is_empty(),
+            "the stale estimate is dropped"
+        );
+        assert!(!ls.converged(), "{ls:?}");
     }
 
     #[test]

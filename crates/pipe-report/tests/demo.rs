@@ -636,3 +636,78 @@ fn a_bad_variant_stops_the_sweep_before_anything_runs() {
     assert_eq!(run("material.epochs"), 2);
     assert!(!dir.path().join(".pipe/cache").exists());
 }
+
+/// One frame's PSNR and SSIM in `evaluate`'s `metrics.arrow` equal a direct computation with
+/// `pipe-loss` on the saved render and the target built from `ingest`'s capture, mask and plate
+/// (capture inside the mask, plate outside). The saved PNG is 8-bit, so the recomputation sees
+/// the render rounded to 1/255: at ~30 dB that moves PSNR by ~0.01 dB, SSIM by ~1e-4.
+#[test]
+fn one_frames_scores_equal_pipe_loss_on_the_saved_render_and_target() {
+    use pipe::scene::{frames::Frames, metrics::Metrics, table, targets};
+    let d = demo();
+    let report = d.json("auto/report.json");
+    let stages = report["scenes"][0]["stages"].as_array().unwrap().clone();
+    let entry = |kind: &str| {
+        let s = stages.iter().find(|s| s["kind"] == kind).unwrap();
+        d.cache()
+            .join(format!("{kind}-{}", s["key"].as_str().unwrap()))
+    };
+    let (ingest, evaluate) = (entry("ingest"), entry("evaluate"));
+    let frames: Frames = table::read(&ingest.join("frames.arrow")).unwrap();
+    let metrics: Metrics = table::read(&evaluate.join("metrics.arrow")).unwrap();
+    let (view, frame) = (10u16, 2u16);
+    let row = frames
+        .rows
+        .iter()
+        .find(|r| r.view == view && r.frame == frame)
+        .unwrap();
+    let target = &targets::load(&ingest, &[row]).unwrap()[0];
+    let plate = target.plate.as_ref().expect("the demo scene has plates");
+    let truth = target.over(plate);
+    let saved = pipe::io::image::read_rgb8(&evaluate.join(format!("renders/v{view}_f{frame}.png")))
+        .unwrap();
+    let (w, h) = target.size();
+    assert_eq!((saved.width as usize, saved.height as usize), (w, h));
+    let ours: Vec<f32> = saved.data.iter().map(|v| f32::from(*v) / 255.0).collect();
+    let a = pipe_loss::Image::new("render", &ours, w, h).unwrap();
+    let b = pipe_loss::Image::new("target", &truth, w, h).unwrap();
+    let (psnr, ssim) = (
+        pipe_loss::psnr(a, b).unwrap(),
+        pipe_loss::ssim(a, b).unwrap(),
+    );
+    let recorded = |metric: &str| {
+        let found: Vec<f64> = metrics
+            .rows
+            .iter()
+            .filter(|m| m.metric == metric && m.view == Some(view) && m.frame == Some(frame))
+            .map(|m| m.value)
+            .collect();
+        assert_eq!(found.len(), 1, "{metric}: {found:?}");
+        found[0]
+    };
+    let (psnr_rec, ssim_rec) = (recorded("test_psnr"), recorded("test_ssim"));
+    assert!(psnr.is_finite() && ssim.is_finite(), "{psnr} {ssim}");
+    assert!(
+        (psnr - psnr_rec).abs() < 0.05,
+        "PSNR {psnr} vs recorded {psnr_rec}"
+    );
+    assert!(
+        (ssim - ssim_rec).abs() < 1e-3,
+        "SSIM {ssim} vs recorded {ssim_rec}"
+    );
+    // And the test view's mean over frames is evaluation.json's.
+    let evaluation = read_json(&evaluate.join("evaluation.json"));
+    let test: Vec<f64> = metrics
+        .rows
+        .iter()
+        .filter(|m| m.metric == "test_psnr")
+        .map(|m| m.value)
+        .collect();
+    assert_eq!(test.len(), 5);
+    let mean = test.iter().sum::<f64>() / test.len() as f64;
+    let stated = evaluation["test_psnr_mean"].as_f64().unwrap();
+    assert!(
+        (mean - stated).abs() <= 1e-12 * stated,
+        "{mean} vs {stated}"
+    );
+}
