@@ -89,8 +89,8 @@ enum Command {
         #[command(flatten)]
         pipeline: PipelineArgs,
         /// `stage.key=v1,v2,...` or `preset=draft,standard` (repeatable: the grid is the
-        /// product of all of them).
-        #[arg(long = "over", value_name = "KEY=V1,V2,...", required = true, value_parser = parse_axis)]
+        /// product of all of them); replaces the file's `sweep:` axis of the same key.
+        #[arg(long = "over", value_name = "KEY=V1,V2,...", value_parser = parse_axis)]
         over: Vec<crate::sweep::Axis>,
         /// Output folder; default: `sweeps/<pipeline name>`.
         #[arg(long, value_name = "DIR")]

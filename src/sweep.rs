@@ -179,6 +179,34 @@ pub struct SweepSummary {
     pub variants: Vec<VariantResult>,
 }
 
+/// The axes of a sweep: the pipeline file's `sweep:` block, each replaced by a command-line
+/// `--over` of the same key, then the other `--over` axes in their order.
+pub fn axes(
+    file: &Path,
+    registry: &Registry,
+    base: &Overrides,
+    over: &[Axis],
+) -> Result<Vec<Axis>, RunError> {
+    let from_file = spec::load(file, registry, base)?.sweep;
+    let mut axes: Vec<Axis> = from_file
+        .into_iter()
+        .map(|a| over.iter().find(|o| o.key == a.key).cloned().unwrap_or(a))
+        .collect();
+    for o in over {
+        if !axes.iter().any(|a| a.key == o.key) {
+            axes.push(o.clone());
+        }
+    }
+    if axes.is_empty() {
+        return Err(RunError::Usage(format!(
+            "nothing to sweep: {} has no `sweep:` block and no --over was given \
+             (e.g. --over material.cells=12,16,24)",
+            file.display()
+        )));
+    }
+    Ok(axes)
+}
+
 /// Load every variant's pipeline (so a bad value is reported before anything runs).
 pub fn plan(
     file: &Path,
@@ -214,7 +242,7 @@ pub struct SweepRequest {
     pub file: PathBuf,
     /// `--preset` and `--set` shared by every variant (a variant's values win).
     pub base: Overrides,
-    /// The `--over` axes.
+    /// The `--over` axes (merged with the file's `sweep:` block by [`axes`]).
     pub axes: Vec<Axis>,
 }
 
@@ -227,7 +255,8 @@ pub fn run(
     interrupt: &AtomicBool,
     command: &str,
 ) -> Result<SweepSummary, RunError> {
-    let (file, axes) = (&request.file, &request.axes);
+    let file = &request.file;
+    let axes = &axes(file, registry, &request.base, &request.axes)?;
     let planned = plan(file, registry, &request.base, axes)?;
     let name = planned
         .first()

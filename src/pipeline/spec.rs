@@ -191,6 +191,9 @@ pub struct Pipeline {
     pub scene: SceneSpec,
     /// Stages in file order.
     pub stages: Vec<StageSpec>,
+    /// `sweep:`: the axes `pipe sweep` varies when the command line gives no `--over` for
+    /// them, in file order (`pipe run` ignores them).
+    pub sweep: Vec<crate::sweep::Axis>,
 }
 
 impl Pipeline {
@@ -223,7 +226,7 @@ pub struct SpecError {
     pub hint: Option<String>,
 }
 
-const TOP_KEYS: [&str; 4] = ["name", "scene", "preset", "stages"];
+const TOP_KEYS: [&str; 5] = ["name", "scene", "preset", "stages", "sweep"];
 
 /// Read, validate and resolve a pipeline file.
 pub fn load(
@@ -285,6 +288,11 @@ pub fn parse(
                 format!("unknown preset {v}; expected one of draft, standard, paper"),
             )
         })?,
+    };
+
+    let sweep = match root.remove("sweep") {
+        None => Vec::new(),
+        Some(v) => sweep_axes(&ctx, v)?,
     };
 
     let mut sets = parse_sets(&ctx, &overrides.sets)?;
@@ -398,7 +406,53 @@ pub fn parse(
         preset,
         scene,
         stages,
+        sweep,
     })
+}
+
+/// The `sweep:` block: a mapping from `preset` or `stage.key` to the list of its values, e.g.
+/// `sweep: {material.cells: [12, 16, 24], preset: [draft, standard]}` (the first key varies
+/// slowest, as the first `--over`).
+fn sweep_axes(ctx: &Ctx, v: Value) -> Result<Vec<crate::sweep::Axis>, SpecError> {
+    let Value::Object(map) = v else {
+        return Err(ctx.at(
+            "sweep",
+            format!(
+                "`sweep` must map `preset` or stage.key to a list of values, \
+                 e.g. sweep: {{material.cells: [12, 16, 24]}}; found {v}"
+            ),
+        ));
+    };
+    let mut axes = Vec::new();
+    for (key, values) in map {
+        let Value::Array(values) = values else {
+            return Err(ctx.at(
+                &format!("sweep.{key}"),
+                format!(
+                    "`sweep.{key}` must be a list of values, e.g. [12, 16, 24]; found {values}"
+                ),
+            ));
+        };
+        if values.is_empty() {
+            return Err(ctx.at(
+                &format!("sweep.{key}"),
+                format!("`sweep.{key}` lists no value"),
+            ));
+        }
+        // Each value as `--set` takes it: plain scalars as written, anything with a comma,
+        // bracket or quote as JSON (a YAML flow value).
+        let text: Vec<String> = values
+            .iter()
+            .map(|v| match v {
+                Value::String(s) if !s.contains([',', '[', ']', '{', '}', '"', '\'']) => s.clone(),
+                other => other.to_string(),
+            })
+            .collect();
+        let axis = crate::sweep::Axis::parse(&format!("{key}={}", text.join(",")))
+            .map_err(|e| ctx.at(&format!("sweep.{key}"), format!("in `sweep:`: {e}")))?;
+        axes.push(axis);
+    }
+    Ok(axes)
 }
 
 /// Property names of an object schema (for "did you mean").
@@ -679,6 +733,11 @@ pub fn json_schema(registry: &Registry) -> Value {
                 "minProperties": 1,
                 "additionalProperties": false,
                 "properties": stage_props
+            },
+            "sweep": {
+                "description": "Axes `pipe sweep` varies (`pipe run` ignores them): `preset` or `stage.key` to the list of its values; the first key varies slowest. A `--over` of the same key replaces the file's axis.",
+                "type": "object",
+                "additionalProperties": {"type": "array", "minItems": 1}
             }
         },
         "$defs": defs

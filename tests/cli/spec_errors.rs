@@ -278,3 +278,77 @@ fn shipped_pipeline_files_parse_with_the_builtin_stages() {
     }
     assert!(seen >= 2, "pipelines/*.yaml");
 }
+
+#[test]
+fn a_sweep_block_gives_axes_in_file_order_and_over_replaces_its_key() {
+    let p = parse(&format!(
+        "{HEAD}stages:\n  source: {{value: 1}}\nsweep:\n  source.value: [3, 1, 2]\n  preset: [draft, standard]\n  source.list: [[1, 2], [3]]\n"
+    ))
+    .unwrap();
+    let axes: Vec<(String, Vec<String>)> = p
+        .sweep
+        .iter()
+        .map(|a| (a.key.clone(), a.values.clone()))
+        .collect();
+    assert_eq!(
+        axes,
+        [
+            (
+                "source.value".to_string(),
+                vec!["3".to_string(), "1".into(), "2".into()]
+            ),
+            (
+                "preset".to_string(),
+                vec!["draft".to_string(), "standard".into()]
+            ),
+            (
+                "source.list".to_string(),
+                vec!["[1,2]".to_string(), "[3]".into()]
+            ),
+        ]
+    );
+    // `pipe sweep --over` replaces the file's axis of the same key and appends new ones.
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("t.yaml");
+    std::fs::write(
+        &file,
+        format!("{HEAD}stages:\n  source: {{value: 1}}\nsweep:\n  source.value: [3, 1]\n  preset: [draft, standard]\n"),
+    )
+    .unwrap();
+    let over = [
+        pipe::sweep::Axis::parse("preset=paper").unwrap(),
+        pipe::sweep::Axis::parse("source.factor=2,4").unwrap(),
+    ];
+    let merged = pipe::sweep::axes(&file, &registry(), &Overrides::default(), &over).unwrap();
+    let keys: Vec<(&str, usize)> = merged
+        .iter()
+        .map(|a| (a.key.as_str(), a.values.len()))
+        .collect();
+    assert_eq!(
+        keys,
+        [("source.value", 2), ("preset", 1), ("source.factor", 2)]
+    );
+    // Without a block and without --over there is nothing to sweep.
+    std::fs::write(&file, format!("{HEAD}stages:\n  source: {{value: 1}}\n")).unwrap();
+    let e = pipe::sweep::axes(&file, &registry(), &Overrides::default(), &[]).unwrap_err();
+    assert!(e.to_string().contains("nothing to sweep"), "{e}");
+}
+
+#[test]
+fn a_bad_sweep_block_names_the_key() {
+    let e = err(&format!(
+        "{HEAD}stages:\n  source: {{value: 1}}\nsweep:\n  source.value: 3\n"
+    ));
+    assert!(
+        e.contains("`sweep.source.value` must be a list of values") && e.contains("line 8"),
+        "{e}"
+    );
+    let e = err(&format!(
+        "{HEAD}stages:\n  source: {{value: 1}}\nsweep:\n  preset: [fast]\n"
+    ));
+    assert!(e.contains("unknown preset `fast`"), "{e}");
+    let e = err(&format!(
+        "{HEAD}stages:\n  source: {{value: 1}}\nsweep: [1, 2]\n"
+    ));
+    assert!(e.contains("`sweep` must map"), "{e}");
+}
