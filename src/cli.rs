@@ -622,7 +622,8 @@ fn execute(
     }
 }
 
-/// The stage's summary metrics (rows for no particular epoch or view), e.g. `; test_psnr_mean 29.6`.
+/// The stage's summary metrics (rows for no particular epoch, view or frame), e.g.
+/// `; test_psnr_mean 29.6`.
 fn headline_metrics(entry: &Path) -> String {
     let Ok(m) =
         crate::scene::table::read::<crate::scene::metrics::Metrics>(&entry.join("metrics.arrow"))
@@ -632,7 +633,7 @@ fn headline_metrics(entry: &Path) -> String {
     let rows: Vec<String> = m
         .rows
         .iter()
-        .filter(|r| r.epoch.is_none() && r.view.is_none())
+        .filter(|r| r.epoch.is_none() && r.view.is_none() && r.frame.is_none())
         .take(4)
         .map(|r| format!("{} {}", r.metric, short_number(r.value)))
         .collect();
@@ -672,4 +673,29 @@ fn files_line(files: &[PathBuf]) -> String {
 
 fn display_dir(p: &Path) -> String {
     p.display().to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::stage::MetricRow;
+
+    #[test]
+    fn status_headlines_skip_per_frame_rows() {
+        let dir = tempfile::tempdir().unwrap();
+        let row = |frame: Option<u16>, metric: &str, value: f64| MetricRow {
+            epoch: None,
+            view: None,
+            frame,
+            metric: metric.into(),
+            value,
+        };
+        let rows = [
+            row(Some(0), "chamfer_m", 0.006),
+            row(Some(1), "chamfer_m", f64::NAN),
+            row(None, "test_psnr_mean", 29.24),
+        ];
+        crate::scene::metrics::write(&dir.path().join("metrics.arrow"), "evaluate", &rows).unwrap();
+        assert_eq!(headline_metrics(dir.path()), "; test_psnr_mean 29.24");
+    }
 }
