@@ -687,15 +687,9 @@ mod tests {
 
     /// Points on a sphere of radius `r` (m) about `c`, about `spacing` apart (Fibonacci lattice).
     fn sphere_surface(c: DVec3, r: f64, spacing: f64) -> Vec<DVec3> {
-        let n = (4.0 * PI * r * r / (spacing * spacing)).ceil() as usize;
-        let golden = PI * (3.0 - 5f64.sqrt());
-        (0..n)
-            .map(|i| {
-                let y = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
-                let rho = (1.0 - y * y).sqrt();
-                let phi = golden * i as f64;
-                c + r * DVec3::new(rho * phi.cos(), y, rho * phi.sin())
-            })
+        super::scenes::sphere_normals(r, spacing)
+            .into_iter()
+            .map(|normal| c + r * normal)
             .collect()
     }
 

@@ -84,6 +84,21 @@ impl<S: Shape> Shape for Placed<S> {
     }
 }
 
+/// Unit normals of points on a sphere of radius `r` (m) about `spacing` apart (Fibonacci
+/// lattice).
+pub(super) fn sphere_normals(r: f64, spacing: f64) -> Vec<DVec3> {
+    let n = (4.0 * PI * r * r / (spacing * spacing)).ceil() as usize;
+    let golden = PI * (3.0 - 5f64.sqrt());
+    (0..n)
+        .map(|i| {
+            let y = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
+            let rho = (1.0 - y * y).sqrt();
+            let phi = golden * i as f64;
+            DVec3::new(rho * phi.cos(), y, rho * phi.sin())
+        })
+        .collect()
+}
+
 struct Sphere(f64);
 
 impl Shape for Sphere {
@@ -91,16 +106,9 @@ impl Shape for Sphere {
         p.length() - self.0
     }
     fn surface(&self, spacing: f64) -> Vec<(DVec3, DVec3)> {
-        let n = (4.0 * PI * self.0 * self.0 / (spacing * spacing)).ceil() as usize;
-        let golden = PI * (3.0 - 5f64.sqrt());
-        (0..n)
-            .map(|i| {
-                let y = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
-                let rho = (1.0 - y * y).sqrt();
-                let phi = golden * i as f64;
-                let normal = DVec3::new(rho * phi.cos(), y, rho * phi.sin());
-                (self.0 * normal, normal)
-            })
+        sphere_normals(self.0, spacing)
+            .into_iter()
+            .map(|normal| (self.0 * normal, normal))
             .collect()
     }
     fn volume(&self) -> f64 {
