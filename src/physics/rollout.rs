@@ -99,10 +99,15 @@ pub struct Outcome {
     pub frame_loss: Vec<f64>,
     /// Substeps of each frame.
     pub substeps: Vec<usize>,
-    /// `∂L/∂(material parameter)` of the family's parameters (values, not encodings).
+    /// `∂L/∂(material parameter)` of the family's parameters (values, not encodings); with
+    /// per-particle [`Moduli`], `E` and `ν` hold the sums of their per-particle gradients
+    /// (a uniform change of every particle's value).
     pub material: Option<BTreeMap<Param, f64>>,
     /// `∂L/∂v0` per particle.
     pub v0: Option<Vec<DVec3>>,
+    /// With per-particle [`Moduli`]: `∂L/∂E_p` (per Pa) and `∂L/∂ν_p` per particle (the
+    /// material gradient's `E` and `ν` are then their sums).
+    pub moduli: Option<Moduli>,
     /// The state at the end of the last frame.
     pub last: State,
 }
@@ -130,16 +135,44 @@ pub struct Rollout<'a> {
     pub precision: Precision,
     /// Stop when this turns true (checked every frame).
     pub interrupt: Option<&'a std::sync::atomic::AtomicBool>,
+    /// Per-particle `E` and `ν` replacing the values' (a material field, paper §3.2); `None`:
+    /// the values' for every particle.
+    pub moduli: Option<&'a Moduli>,
 }
 
-/// The object's per-particle material for `values`: the body's masses and volumes with the
-/// values' moduli.
-pub fn material_of(object: &Object, values: &MaterialValues) -> Result<Material, MpmError> {
+/// Per-particle elastic moduli of a solid (one entry per simulated particle).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Moduli {
+    /// Young's modulus `E_p` (Pa).
+    pub e: Vec<f64>,
+    /// Poisson's ratio `ν_p`.
+    pub nu: Vec<f64>,
+}
+
+/// The object's per-particle material for `values` (and per-particle `moduli` when given):
+/// the body's masses and volumes with the values' moduli.
+pub fn material_of(
+    object: &Object,
+    values: &MaterialValues,
+    moduli: Option<&Moduli>,
+) -> Result<Material, MpmError> {
     let n = object.particles();
     let mut m = values.spec().material(n, 1.0)?;
     // The family's scalars are the model's own (`Simulator::set_model`).
     m.volume.clone_from(&object.body.material.volume);
     m.mass.clone_from(&object.body.material.mass);
+    if let Some(k) = moduli {
+        if is_fluid(values.family) {
+            return Err(MpmError::InvalidParameter {
+                field: "E",
+                value: k.e.first().copied().unwrap_or(f64::NAN),
+                reason: "per-particle E and ν given to a fluid",
+            });
+        }
+        let pp = Material::from_e_nu_per_particle(m.mass.clone(), m.volume.clone(), &k.e, &k.nu)?;
+        m.mu = pp.mu;
+        m.lam = pp.lam;
+    }
     Ok(m)
 }
 
@@ -216,8 +249,23 @@ impl ModelVisitor for Visit<'_, '_> {
         let mut sim = Simulator::new(model.clone(), object.body.config(&object.spec, r.precision))
             .map_err(sim_err(0))?;
         let mut values = r.material.clone();
-        let mut mat = material_of(object, &values).map_err(sim_err(0))?;
+        let mut mat = material_of(object, &values, r.moduli).map_err(sim_err(0))?;
         let mut per_value: BTreeMap<Param, f64> = BTreeMap::new();
+        let mut per_particle = r.moduli.map(|k| Moduli {
+            e: vec![0.0; k.e.len()],
+            nu: vec![0.0; k.nu.len()],
+        });
+        let mut add_particles = |g: &pipe_mpm::MaterialGrad| {
+            if let (Some(acc), Some(k)) = (per_particle.as_mut(), r.moduli) {
+                let (ge, gnu) = g.e_nu_per_particle(&k.e, &k.nu);
+                for (a, v) in acc.e.iter_mut().zip(ge) {
+                    *a += v;
+                }
+                for (a, v) in acc.nu.iter_mut().zip(gnu) {
+                    *a += v;
+                }
+            }
+        };
         let mut state = object.body.state.clone();
         for (v, v0) in state.v.iter_mut().zip(r.v0) {
             *v = *v0;
@@ -275,6 +323,7 @@ impl ModelVisitor for Visit<'_, '_> {
                     BackwardOptions::default(),
                 )
                 .map_err(sim_err(frame))?;
+            add_particles(&g.material);
             let grad = values.gradient(&g.material);
             for (p, v) in &grad {
                 *per_value.entry(*p).or_default() += v;
@@ -282,7 +331,7 @@ impl ModelVisitor for Visit<'_, '_> {
             if let Some(cb) = on_frame.as_deref_mut()
                 && let Some(next) = cb(frame, &grad)?
             {
-                mat = material_of(object, &next).map_err(sim_err(frame))?;
+                mat = material_of(object, &next, r.moduli).map_err(sim_err(frame))?;
                 sim.set_model(model.with_params(&family_params(&next)))
                     .map_err(sim_err(frame))?;
                 values = next;
@@ -306,12 +355,18 @@ impl ModelVisitor for Visit<'_, '_> {
                         BackwardOptions::default(),
                     )
                     .map_err(sim_err(frame))?;
+                add_particles(&g.material);
                 for (p, v) in values.gradient(&g.material) {
                     *per_value.entry(p).or_default() += v;
                 }
                 carry = Some(g.state.clone());
             }
             v0_grad = carry.map(|c| c.v);
+        }
+        if let Some(pp) = &per_particle {
+            // A uniform change of every particle's E (ν) by dE (dν).
+            per_value.insert(Param::E, pp.e.iter().sum());
+            per_value.insert(Param::Nu, pp.nu.iter().sum());
         }
         let material = grads.then_some(per_value);
         Ok(Outcome {
@@ -323,6 +378,7 @@ impl ModelVisitor for Visit<'_, '_> {
             } else {
                 None
             },
+            moduli: if grads { per_particle } else { None },
             last: state,
         })
     }

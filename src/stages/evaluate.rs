@@ -281,6 +281,7 @@ impl TypedStage for Evaluate {
             frames: last,
             precision: p.precision.mpm(),
             interrupt: Some(ctx.interrupt_flag()),
+            moduli: None,
         }
         .run(&mut eval, Wants::Loss)
         .map_err(train_error)?;

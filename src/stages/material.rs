@@ -412,6 +412,7 @@ impl TypedStage for MaterialStage {
                 frames: last,
                 precision,
                 interrupt: Some(interrupt),
+                moduli: None,
             };
             let step = |u: &mut Vec<f64>,
                         adam: &mut Adam,
@@ -531,6 +532,7 @@ impl TypedStage for MaterialStage {
                 frames: last,
                 precision,
                 interrupt: Some(interrupt),
+                moduli: None,
             }
             .run(loss, Wants::Loss)
             .map_err(|e| fail(p.epochs, e))

@@ -333,6 +333,7 @@ impl TypedStage for Velocity {
                 frames: last,
                 precision,
                 interrupt: Some(interrupt),
+                moduli: None,
             };
             let out = rollout
                 .run(&mut loss, Wants::Velocity)
@@ -404,6 +405,7 @@ impl TypedStage for Velocity {
                 frames: last,
                 precision,
                 interrupt: Some(interrupt),
+                moduli: None,
             }
             .run(loss, Wants::Loss)
             .map(|o| o.loss())

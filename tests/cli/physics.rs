@@ -15,7 +15,7 @@ use glam::DVec3;
 use pipe::physics::object::{Object, ObjectSettings};
 use pipe::physics::params::{MaterialValues, Param};
 use pipe::physics::pose::Pose;
-use pipe::physics::rollout::{FrameLoss, Rollout, RolloutError, Truncate, Wants};
+use pipe::physics::rollout::{FrameLoss, Moduli, Rollout, RolloutError, Truncate, Wants};
 use pipe::pipeline::spec::{MaterialFamily, SceneSpec};
 use pipe::scene::gaussians::Gaussians;
 use pipe_mpm::{Precision, State, StateGrad};
@@ -202,6 +202,7 @@ fn rollout_loss(object: &Object, values: &MaterialValues, v0: &[DVec3], frames: 
         frames,
         precision: Precision::F64,
         interrupt: None,
+        moduli: None,
     }
     .run(&mut l, Wants::Loss)
     .unwrap()
@@ -227,6 +228,7 @@ fn material_and_velocity_gradients_match_finite_differences_through_render_and_m
         frames,
         precision: Precision::F64,
         interrupt: None,
+        moduli: None,
     };
     let out = run.run(&mut loss, Wants::Velocity).unwrap();
     assert_eq!(out.substeps, vec![10, 10]);
@@ -291,6 +293,134 @@ fn material_and_velocity_gradients_match_finite_differences_through_render_and_m
     }
 }
 
+/// Per-particle `E` and `ν` (a material field's output): each particle's gradient, through
+/// both frames (and the truncated mode's), matches central differences of the whole rollout;
+/// uniform moduli give the global material's loss and, summed, its gradient.
+#[test]
+fn per_particle_moduli_gradients_match_finite_differences() {
+    let object = object();
+    let n = object.particles();
+    let values = MaterialValues::guess(
+        MaterialFamily::Elastic,
+        1000.0,
+        &BTreeMap::from([(Param::E, 5e3), (Param::Nu, 0.3)]),
+    );
+    let v0 = velocity(&object, DVec3::ZERO);
+    // Two halves of different stiffness (split along x at the body's centre).
+    let c = object.centre_of_mass();
+    let moduli = Moduli {
+        e: object
+            .body
+            .state
+            .x
+            .iter()
+            .map(|x| if x.x < c.x { 3e3 } else { 9e3 })
+            .collect(),
+        nu: (0..n).map(|i| 0.2 + 0.2 * hash(i, 3)).collect(),
+    };
+    let run = |moduli: &Moduli, wants| {
+        let mut l = LinearLoss::new(&object);
+        Rollout {
+            object: &object,
+            material: &values,
+            v0: &v0,
+            frames: 2,
+            precision: Precision::F64,
+            interrupt: None,
+            moduli: Some(moduli),
+        }
+        .run(&mut l, wants)
+        .unwrap()
+    };
+    for wants in [
+        Wants::Material(Truncate::None),
+        Wants::Material(Truncate::Frame),
+    ] {
+        let out = run(&moduli, wants);
+        let g = out.moduli.as_ref().expect("per-particle gradients");
+        assert_eq!((g.e.len(), g.nu.len()), (n, n));
+        assert!(g.e.iter().chain(&g.nu).all(|v| v.is_finite()));
+        if wants == Wants::Material(Truncate::Frame) {
+            // The truncated gradient is not the rollout's derivative: only its shape is checked.
+            continue;
+        }
+        // Largest per-particle gradient of each kind: the error floor is relative to it.
+        let largest = |v: &[f64]| v.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        let (scale_e, scale_nu) = (largest(&g.e), largest(&g.nu));
+        for p in [0, n / 3, n - 1] {
+            for (which, h) in [("E", 1e-2), ("nu", 1e-6)] {
+                let at = |d: f64| {
+                    let mut m = moduli.clone();
+                    if which == "E" {
+                        m.e[p] += d;
+                    } else {
+                        m.nu[p] += d;
+                    }
+                    run(&m, Wants::Loss).loss()
+                };
+                let fd = (at(h) - at(-h)) / (2.0 * h);
+                let ad = if which == "E" { g.e[p] } else { g.nu[p] };
+                println!("particle {p} dL/d{which}: adjoint {ad:.6e}, central difference {fd:.6e}");
+                assert!(
+                    fd.abs() > 1e-14,
+                    "particle {p} {which}: a gradient to check"
+                );
+                let scale = if which == "E" { scale_e } else { scale_nu };
+                assert!(
+                    (ad - fd).abs() <= 2e-4 * fd.abs() + 1e-4 * scale,
+                    "particle {p} dL/d{which}: adjoint {ad:e} vs central difference {fd:e} (largest {scale:e})"
+                );
+            }
+        }
+    }
+    // Uniform moduli are the global material.
+    let uniform = Moduli {
+        e: vec![5e3; n],
+        nu: vec![0.3; n],
+    };
+    let with = run(&uniform, Wants::Material(Truncate::None));
+    let mut l = LinearLoss::new(&object);
+    let global = Rollout {
+        object: &object,
+        material: &values,
+        v0: &v0,
+        frames: 2,
+        precision: Precision::F64,
+        interrupt: None,
+        moduli: None,
+    }
+    .run(&mut l, Wants::Material(Truncate::None))
+    .unwrap();
+    assert!((with.loss() - global.loss()).abs() <= 1e-12 * global.loss().abs());
+    let (a, b) = (with.material.unwrap(), global.material.unwrap());
+    for p in [Param::E, Param::Nu] {
+        assert!(
+            (a[&p] - b[&p]).abs() <= 1e-9 * b[&p].abs(),
+            "{p:?}: summed {} vs global {}",
+            a[&p],
+            b[&p]
+        );
+    }
+    // Lengths that do not match the particles are an error, not a panic.
+    let short = Moduli {
+        e: vec![5e3; n - 1],
+        nu: vec![0.3; n - 1],
+    };
+    let mut l = LinearLoss::new(&object);
+    let err = Rollout {
+        object: &object,
+        material: &values,
+        v0: &v0,
+        frames: 1,
+        precision: Precision::F64,
+        interrupt: None,
+        moduli: Some(&short),
+    }
+    .run(&mut l, Wants::Loss)
+    .unwrap_err();
+    assert!(err.to_string().contains("expected"), "{err}");
+}
+
 #[test]
 fn a_newtonian_scene_learns_only_the_fluids_parameters() {
     let fluid = MaterialValues::guess(MaterialFamily::Newtonian, 1000.0, &BTreeMap::new());
@@ -311,6 +441,7 @@ fn a_newtonian_scene_learns_only_the_fluids_parameters() {
         frames: 1,
         precision: Precision::F64,
         interrupt: None,
+        moduli: None,
     }
     .run(&mut l, Wants::Material(Truncate::Frame))
     .unwrap();
