@@ -8,6 +8,7 @@
 pub mod adam;
 pub mod descent;
 pub mod fit;
+pub mod material_field;
 pub mod object;
 pub mod params;
 pub mod particles;

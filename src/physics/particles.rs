@@ -131,11 +131,13 @@ impl Table for MaterialParticles {
     }
 }
 
-/// Writes the particles of `object` under `material` with initial velocities `v0` (m/s).
+/// Writes the particles of `object` under `material` (with per-particle E and ν from `moduli`
+/// when given) and initial velocities `v0` (m/s).
 pub fn write(
     path: &Path,
     object: &Object,
     material: &MaterialValues,
+    moduli: Option<&super::rollout::Moduli>,
     v0: &[DVec3],
 ) -> Result<(), TableError> {
     let n = object.particles();
@@ -160,11 +162,15 @@ pub fn write(
         v0: v0.iter().map(|v| v.as_vec3().to_array()).collect(),
         mass_kg: object.body.material.mass.clone(),
         volume_m3: object.body.material.volume.clone(),
-        youngs_pa: if fluid { vec![None; n] } else { each(Param::E) },
-        poisson: if fluid {
-            vec![None; n]
-        } else {
-            each(Param::Nu)
+        youngs_pa: match (fluid, moduli) {
+            (true, _) => vec![None; n],
+            (false, Some(m)) => m.e.iter().map(|v| Some(*v)).collect(),
+            (false, None) => each(Param::E),
+        },
+        poisson: match (fluid, moduli) {
+            (true, _) => vec![None; n],
+            (false, Some(m)) => m.nu.iter().map(|v| Some(*v)).collect(),
+            (false, None) => each(Param::Nu),
         },
         yield_stress_pa: each(Param::YieldStress),
         viscosity_pa_s: each(Param::Viscosity),

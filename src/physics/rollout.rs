@@ -176,14 +176,62 @@ pub fn material_of(
     Ok(m)
 }
 
+impl Moduli {
+    /// Adds `o` entry by entry.
+    fn add(&mut self, o: &Moduli) {
+        for (a, v) in self.e.iter_mut().zip(&o.e) {
+            *a += v;
+        }
+        for (a, v) in self.nu.iter_mut().zip(&o.nu) {
+            *a += v;
+        }
+    }
+}
+
+/// One backward pass's gradient: `∂L/∂value` of the family's parameters and, with per-particle
+/// `moduli`, `∂L/∂E_p` and `∂L/∂ν_p` (then the values' `E` and `ν` entries are their sums: a
+/// uniform change of every particle's value).
+fn frame_gradient(
+    values: &MaterialValues,
+    moduli: Option<&Moduli>,
+    g: &pipe_mpm::MaterialGrad,
+) -> (BTreeMap<Param, f64>, Option<Moduli>) {
+    let mut grad = values.gradient(g);
+    let per_particle = moduli.map(|k| {
+        let (e, nu) = g.e_nu_per_particle(&k.e, &k.nu);
+        grad.insert(Param::E, e.iter().sum());
+        grad.insert(Param::Nu, nu.iter().sum());
+        Moduli { e, nu }
+    });
+    (grad, per_particle)
+}
+
+/// What one frame's backward pass gives an online descent ([`Rollout::run_online`]).
+#[derive(Debug, Clone, Copy)]
+pub struct FrameGradient<'g> {
+    /// `∂L/∂value` of the family's parameters.
+    pub values: &'g BTreeMap<Param, f64>,
+    /// Per-particle `∂L/∂E_p` (per Pa) and `∂L/∂ν_p`, when the rollout has per-particle moduli.
+    pub moduli: Option<&'g Moduli>,
+}
+
+/// The material the frames after an online step take.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NextMaterial {
+    /// The family's values.
+    pub values: MaterialValues,
+    /// Per-particle `E` and `ν` (`None`: the values' for every particle).
+    pub moduli: Option<Moduli>,
+}
+
 /// Substeps between tape checkpoints: a frame's reversal then recomputes each substep about
 /// three times with the default snapshots (memory: one state per checkpoint).
 const CHECKPOINT_EVERY: usize = 16;
 
-/// Called after each frame's backward pass of a [`Rollout::run_online`] with the frame and
-/// `∂L/∂value` of the family's parameters: the material the next frames take, if it changes.
+/// Called after each frame's backward pass of a [`Rollout::run_online`] with the frame and its
+/// gradient: the material the next frames take, if it changes.
 pub type OnFrame<'c> =
-    dyn FnMut(u16, &BTreeMap<Param, f64>) -> Result<Option<MaterialValues>, RolloutError> + 'c;
+    dyn FnMut(u16, FrameGradient<'_>) -> Result<Option<NextMaterial>, RolloutError> + 'c;
 
 impl Rollout<'_> {
     /// Runs the rollout, calling `loss` at the end of every frame.
@@ -249,23 +297,13 @@ impl ModelVisitor for Visit<'_, '_> {
         let mut sim = Simulator::new(model.clone(), object.body.config(&object.spec, r.precision))
             .map_err(sim_err(0))?;
         let mut values = r.material.clone();
-        let mut mat = material_of(object, &values, r.moduli).map_err(sim_err(0))?;
+        let mut moduli: Option<Moduli> = r.moduli.cloned();
+        let mut mat = material_of(object, &values, moduli.as_ref()).map_err(sim_err(0))?;
         let mut per_value: BTreeMap<Param, f64> = BTreeMap::new();
         let mut per_particle = r.moduli.map(|k| Moduli {
             e: vec![0.0; k.e.len()],
             nu: vec![0.0; k.nu.len()],
         });
-        let mut add_particles = |g: &pipe_mpm::MaterialGrad| {
-            if let (Some(acc), Some(k)) = (per_particle.as_mut(), r.moduli) {
-                let (ge, gnu) = g.e_nu_per_particle(&k.e, &k.nu);
-                for (a, v) in acc.e.iter_mut().zip(ge) {
-                    *a += v;
-                }
-                for (a, v) in acc.nu.iter_mut().zip(gnu) {
-                    *a += v;
-                }
-            }
-        };
         let mut state = object.body.state.clone();
         for (v, v0) in state.v.iter_mut().zip(r.v0) {
             *v = *v0;
@@ -323,18 +361,28 @@ impl ModelVisitor for Visit<'_, '_> {
                     BackwardOptions::default(),
                 )
                 .map_err(sim_err(frame))?;
-            add_particles(&g.material);
-            let grad = values.gradient(&g.material);
+            let (grad, frame_moduli) = frame_gradient(&values, moduli.as_ref(), &g.material);
             for (p, v) in &grad {
                 *per_value.entry(*p).or_default() += v;
             }
+            if let (Some(acc), Some(fm)) = (per_particle.as_mut(), &frame_moduli) {
+                acc.add(fm);
+            }
             if let Some(cb) = on_frame.as_deref_mut()
-                && let Some(next) = cb(frame, &grad)?
+                && let Some(next) = cb(
+                    frame,
+                    FrameGradient {
+                        values: &grad,
+                        moduli: frame_moduli.as_ref(),
+                    },
+                )?
             {
-                mat = material_of(object, &next, r.moduli).map_err(sim_err(frame))?;
-                sim.set_model(model.with_params(&family_params(&next)))
+                mat = material_of(object, &next.values, next.moduli.as_ref())
                     .map_err(sim_err(frame))?;
-                values = next;
+                sim.set_model(model.with_params(&family_params(&next.values)))
+                    .map_err(sim_err(frame))?;
+                values = next.values;
+                moduli = next.moduli;
             }
         }
         let mut v0_grad = None;
@@ -355,18 +403,16 @@ impl ModelVisitor for Visit<'_, '_> {
                         BackwardOptions::default(),
                     )
                     .map_err(sim_err(frame))?;
-                add_particles(&g.material);
-                for (p, v) in values.gradient(&g.material) {
+                let (grad, frame_moduli) = frame_gradient(&values, moduli.as_ref(), &g.material);
+                for (p, v) in grad {
                     *per_value.entry(p).or_default() += v;
+                }
+                if let (Some(acc), Some(fm)) = (per_particle.as_mut(), &frame_moduli) {
+                    acc.add(fm);
                 }
                 carry = Some(g.state.clone());
             }
             v0_grad = carry.map(|c| c.v);
-        }
-        if let Some(pp) = &per_particle {
-            // A uniform change of every particle's E (ν) by dE (dν).
-            per_value.insert(Param::E, pp.e.iter().sum());
-            per_value.insert(Param::Nu, pp.nu.iter().sum());
         }
         let material = grads.then_some(per_value);
         Ok(Outcome {

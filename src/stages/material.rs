@@ -25,9 +25,12 @@ use serde_json::{Value, json};
 use crate::physics::adam::{Adam, AdamConfig, decayed};
 use crate::physics::descent::LineSearch;
 use crate::physics::fit::{FitError, Inputs, PrecisionParam, RigidVelocity};
+use crate::physics::material_field::{FieldSettings, colour_of, percentiles, write_weights};
 use crate::physics::object::sim_yaml;
 use crate::physics::params::{MaterialValues, Param};
-use crate::physics::rollout::{Rollout, RolloutError, Truncate, Wants, is_fluid};
+use crate::physics::rollout::{
+    FrameGradient, NextMaterial, Rollout, RolloutError, Truncate, Wants, is_fluid,
+};
 use crate::physics::views::{LossWeights, ViewsLoss};
 use crate::pipeline::spec::{Preset, SceneSpec};
 use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
@@ -40,6 +43,10 @@ pub enum MaterialModel {
     /// One value per parameter: a homogeneous object needs no more.
     #[default]
     Global,
+    /// The global fit first, then per-particle E and ν from a triplane + MLP field over the
+    /// rest positions, started at the global values (seed paper §3.2, eq. 8; the `field:`
+    /// block); the family's other parameters stay global.
+    Field,
 }
 
 /// How the parameters are stepped.
@@ -107,6 +114,9 @@ pub struct MaterialParams {
     /// Gradients longer than this (optimiser coordinates) are scaled down to it.
     #[serde(default = "grad_clip")]
     pub grad_clip: f64,
+    /// The field of `model: field` (ignored by `model: global`).
+    #[serde(default)]
+    pub field: FieldSettings,
 }
 
 fn epochs() -> u32 {
@@ -185,6 +195,26 @@ pub struct MaterialResult {
     pub floaters: usize,
     pub grid_dx: f64,
     pub substeps: Vec<usize>,
+    /// `model: field`: how E and ν vary over the particles (the values above are then the
+    /// medians), the colour map of `field_E.ply`, the weights' table.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field: Option<FieldSummary>,
+}
+
+/// The learned field in `material.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FieldSummary {
+    /// 5th, 50th and 95th percentiles of the particles' log10 E (E in Pa) and ν.
+    pub log10_youngs_modulus_p05_p50_p95: [f64; 3],
+    pub poisson_ratio_p05_p50_p95: [f64; 3],
+    /// `field_E.ply`: each Gaussian coloured by its log10 E, blue at `colour_map_log10_e[0]`,
+    /// green midway, red at `colour_map_log10_e[1]`.
+    pub colour_map_log10_e: [f64; 2],
+    /// Loss over the frames at the global fit the field started from.
+    pub loss_global: f64,
+    /// Weights of the triplane and the MLP (`field.material.arrow`), and their count.
+    pub weights_table: String,
+    pub weights: usize,
 }
 
 /// The `material` stage.
@@ -252,6 +282,22 @@ impl TypedStage for MaterialStage {
         if p.frames == Some(0) {
             return bad("frames", "must be at least 1".into());
         }
+        if p.model == MaterialModel::Field {
+            if let Err(e) = p.field.config(2).validate() {
+                return bad("field", e.to_string());
+            }
+            for (name, v) in [
+                ("field.lr", p.field.lr),
+                ("field.lr_final", p.field.lr_final),
+            ] {
+                if !(v.is_finite() && v > 0.0) {
+                    return bad(name, format!("must be finite and > 0, found {v}"));
+                }
+            }
+            if p.field.epochs == Some(0) {
+                return bad("field.epochs", "must be at least 1".into());
+            }
+        }
         if let Some(l) = &p.learn
             && l.is_empty()
         {
@@ -311,6 +357,10 @@ impl TypedStage for MaterialStage {
                 l
             }
         };
+        if p.model == MaterialModel::Field {
+            // Before any rollout: a field that cannot apply is refused at once.
+            crate::stages::material_field::outputs(family, &learned, ctx.name)?;
+        }
         let object = inputs.object(ctx, &guess, p.cells)?;
         let rigid = RigidVelocity {
             linear: velocity.linear_velocity,
@@ -458,10 +508,13 @@ impl TypedStage for MaterialStage {
                     Ok(out)
                 }
                 (Optimizer::Adam, Truncate::Frame) => {
-                    let mut on_frame = |frame: u16, grad: &BTreeMap<Param, f64>| {
-                        step(&mut u, &mut adam, grad)
+                    let mut on_frame = |frame: u16, grad: FrameGradient<'_>| {
+                        step(&mut u, &mut adam, grad.values)
                             .map_err(|message| RolloutError::Loss { frame, message })?;
-                        Ok(Some(values_of(&u)))
+                        Ok(Some(NextMaterial {
+                            values: values_of(&u),
+                            moduli: None,
+                        }))
                     };
                     rollout.run_online(&mut loss, &mut on_frame)
                 }
@@ -522,23 +575,39 @@ impl TypedStage for MaterialStage {
             )?;
         }
 
+        let global = values_of(&u);
+        let fitted = match p.model {
+            MaterialModel::Global => None,
+            MaterialModel::Field => Some(crate::stages::material_field::fit(
+                p, ctx, &object, &v0, last, &mut loss, &global, &learned,
+            )?),
+        };
+        let result = fitted
+            .as_ref()
+            .map_or_else(|| global.clone(), |f| f.values.clone());
+        let moduli = fitted.as_ref().map(|f| &f.moduli);
         // The losses at the guess and at the result, from clean rollouts.
-        let result = values_of(&u);
-        let eval = |values: &MaterialValues, loss: &mut ViewsLoss<'_>| {
+        let eval = |values: &MaterialValues,
+                    moduli: Option<&crate::physics::rollout::Moduli>,
+                    loss: &mut ViewsLoss<'_>| {
             Rollout {
                 object: &object,
                 material: values,
                 v0: &v0,
                 frames: last,
                 precision,
-                interrupt: Some(interrupt),
-                moduli: None,
+                interrupt: Some(ctx.interrupt_flag()),
+                moduli,
             }
             .run(loss, Wants::Loss)
             .map_err(|e| fail(p.epochs, e))
         };
-        let loss_guess = eval(&guess, &mut loss)?.loss();
-        let final_out = eval(&result, &mut loss)?;
+        let loss_guess = eval(&guess, None, &mut loss)?.loss();
+        let loss_global = match &fitted {
+            Some(_) => Some(eval(&global, None, &mut loss)?.loss()),
+            None => None,
+        };
+        let final_out = eval(&result, moduli, &mut loss)?;
         let psnr = loss.psnr.values().sum::<f64>() / loss.psnr.len().max(1) as f64;
         for (metric, value) in [
             ("loss_guess", loss_guess),
@@ -554,11 +623,51 @@ impl TypedStage for MaterialStage {
             });
         }
         let spec = result.spec();
+        let field = match (&fitted, loss_global) {
+            (Some(f), Some(loss_global)) => {
+                let log_e: Vec<f64> = f.moduli.e.iter().map(|e| e.log10()).collect();
+                let pe = percentiles(&log_e);
+                let pn = percentiles(&f.moduli.nu);
+                let map = [pe[0].min(pe[2] - 0.5), pe[2].max(pe[0] + 0.5)];
+                write_weights(&ctx.out_dir.join("field.material.arrow"), &f.field.field)
+                    .map_err(StageError::failed)?;
+                let mut g = object.gaussians.clone();
+                let per = 3 * (usize::from(g.sh_degree) + 1).pow(2);
+                for (i, e) in log_e.iter().take(g.len()).enumerate() {
+                    let rgb = colour_of(*e, map[0], map[1]);
+                    let sh = &mut g.sh[i * per..(i + 1) * per];
+                    sh.fill(0.0);
+                    for c in 0..3 {
+                        sh[c] = (rgb[c] as f32 - 0.5) / crate::stages::init::SH_C0;
+                    }
+                }
+                crate::io::ply::write_gaussians(&ctx.out_dir.join("field_E.ply"), &g)
+                    .map_err(StageError::failed)?;
+                Some(FieldSummary {
+                    log10_youngs_modulus_p05_p50_p95: pe,
+                    poisson_ratio_p05_p50_p95: pn,
+                    colour_map_log10_e: map,
+                    loss_global,
+                    weights_table: "field.material.arrow".into(),
+                    weights: f.field.field.param_count(),
+                })
+            }
+            _ => None,
+        };
+        let median = |i: usize, global: Option<f64>| {
+            field.as_ref().map_or(global, |f| {
+                Some(if i == 0 {
+                    10f64.powf(f.log10_youngs_modulus_p05_p50_p95[1])
+                } else {
+                    f.poisson_ratio_p05_p50_p95[1]
+                })
+            })
+        };
         let out = MaterialResult {
             family: crate::simulate::spec::family_name(family).into(),
             model: p.model,
-            youngs_modulus: spec.youngs_modulus,
-            poisson_ratio: spec.poisson_ratio,
+            youngs_modulus: median(0, spec.youngs_modulus),
+            poisson_ratio: median(1, spec.poisson_ratio),
             yield_stress: spec.yield_stress,
             viscosity: spec.viscosity,
             bulk_modulus: spec.bulk_modulus,
@@ -578,6 +687,7 @@ impl TypedStage for MaterialStage {
             floaters: object.floaters,
             grid_dx: object.body.setup.dx,
             substeps: final_out.substeps.clone(),
+            field,
         };
         crate::io::write_json(&ctx.out_dir.join("material.json"), &out)
             .map_err(StageError::failed)?;
@@ -606,6 +716,7 @@ impl TypedStage for MaterialStage {
             &ctx.out_dir.join("particles.arrow"),
             &object,
             &result,
+            moduli,
             &v0,
         )
         .map_err(StageError::failed)?;

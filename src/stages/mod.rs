@@ -5,6 +5,7 @@ pub mod evaluate;
 pub mod ingest;
 pub mod init;
 pub mod material;
+mod material_field;
 pub mod velocity;
 pub mod warmup;
 

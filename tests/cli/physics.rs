@@ -421,6 +421,92 @@ fn per_particle_moduli_gradients_match_finite_differences() {
     assert!(err.to_string().contains("expected"), "{err}");
 }
 
+/// A material field's weights → per-particle E and ν → MPM → render → loss: the field's
+/// gradient from the rollout's per-particle gradients (`MaterialField::output_gradient`, then
+/// the field's backward) matches central differences of whole rollouts for a plane feature, a
+/// hidden weight and the output bias of each output.
+#[test]
+fn material_field_gradients_match_finite_differences_through_render_and_mpm() {
+    use pipe::physics::material_field::{FieldSettings, MaterialField};
+    let object = object();
+    let values = MaterialValues::guess(
+        MaterialFamily::Elastic,
+        1000.0,
+        &BTreeMap::from([(Param::E, 5e3), (Param::Nu, 0.3)]),
+    );
+    let v0 = velocity(&object, DVec3::ZERO);
+    let settings = FieldSettings {
+        resolution: 4,
+        channels: 2,
+        hidden: 8,
+        layers: 1,
+        ..FieldSettings::default()
+    };
+    let points: Vec<[f64; 3]> = object.body.state.x.iter().map(|x| x.to_array()).collect();
+    let mut field =
+        MaterialField::starting_at(&settings, points, vec![Param::E, Param::Nu], &values).unwrap();
+    // Away from the constant start, so that every weight kind has a gradient: outputs vary by
+    // about ±0.1 around the global values.
+    let mut w = field.field.to_flat();
+    for (i, x) in w.iter_mut().enumerate() {
+        *x += 0.3 * (hash(i, 11) - 0.5);
+    }
+    field.field.set_flat(&w).unwrap();
+    let loss_at = |f: &MaterialField, wants| {
+        let moduli = f.moduli(&values).unwrap();
+        let mut l = LinearLoss::new(&object);
+        let out = Rollout {
+            object: &object,
+            material: &values,
+            v0: &v0,
+            frames: 2,
+            precision: Precision::F64,
+            interrupt: None,
+            moduli: Some(&moduli),
+        }
+        .run(&mut l, wants)
+        .unwrap();
+        (out, moduli)
+    };
+    let (out, moduli) = loss_at(&field, Wants::Material(Truncate::None));
+    let e = &moduli.e;
+    let spread = e.iter().fold(0.0f64, |m, x| m.max((x / 5e3).log10().abs()));
+    assert!(spread > 0.01 && spread < 0.5, "log10 E spread {spread}");
+    let d = field.output_gradient(&moduli, out.moduli.as_ref().unwrap());
+    let grad = field.field.backward(&field.points, &d).unwrap().to_flat();
+    assert_eq!(grad.len(), w.len());
+    assert!(grad.iter().all(|g| g.is_finite()));
+    let planes = field.field.triplane().values().len();
+    let mlp = field.field.mlp().params().len();
+    // A plane feature, a first-layer weight, and the two output biases (the MLP's last two).
+    let largest_plane = (0..planes)
+        .max_by(|a, b| grad[*a].abs().total_cmp(&grad[*b].abs()))
+        .unwrap();
+    for (kind, k) in [
+        ("plane", largest_plane),
+        ("hidden weight", planes + 3),
+        ("log10 E bias", planes + mlp - 2),
+        ("nu bias", planes + mlp - 1),
+    ] {
+        let h = 1e-6;
+        let at = |delta: f64| {
+            let mut f = field.clone();
+            let mut w = w.clone();
+            w[k] += delta;
+            f.field.set_flat(&w).unwrap();
+            loss_at(&f, Wants::Loss).0.loss()
+        };
+        let fd = (at(h) - at(-h)) / (2.0 * h);
+        let ad = grad[k];
+        println!("{kind} (weight {k}): adjoint {ad:.6e}, central difference {fd:.6e}");
+        assert!(fd.abs() > 1e-9, "{kind}: a gradient to check");
+        assert!(
+            (ad - fd).abs() <= 2e-4 * fd.abs(),
+            "{kind}: adjoint {ad:e} vs central difference {fd:e}"
+        );
+    }
+}
+
 #[test]
 fn a_newtonian_scene_learns_only_the_fluids_parameters() {
     let fluid = MaterialValues::guess(MaterialFamily::Newtonian, 1000.0, &BTreeMap::new());
@@ -529,6 +615,58 @@ fn the_demo_at_draft_learns_velocity_and_e_from_ten_times_too_stiff() {
             "{f}"
         );
     }
+}
+
+/// `material: {model: field}` on the demo (shortened): the global fit, then the field from it;
+/// `material.json` reports the field (percentiles, colour map, the global fit's loss),
+/// `particles.arrow` holds each particle's E and ν, the weights table rebuilds the same field,
+/// `field_E.ply` has one Gaussian per rendered particle (a fluid's refusal: the lib's unit test
+/// `a_field_needs_a_solid_and_e_or_nu_among_the_learned`).
+#[test]
+fn a_material_field_is_learned_from_the_global_fit_and_written() {
+    use pipe::physics::material_field::FieldTable;
+    use pipe::physics::particles::MaterialParticles;
+    let stages = "  ingest: {frames: [0, 1, 2, 3, 4]}\n  init: {}\n  warmup: {epochs: 20}\n  \
+                  velocity: {epochs: 2, frames: 3, cells: 10}\n  \
+                  material: {model: field, epochs: 2, cells: 10, guess: {E: 3.0e5}, \
+                  field: {epochs: 2, resolution: 8, channels: 4, hidden: 16}}\n";
+    let dir = tempfile::tempdir().unwrap();
+    let file = demo_pipeline(dir.path(), "draft", stages);
+    run_builtin(dir.path(), &file, None);
+    let out = entry(dir.path(), &file, "material");
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("material.json")).unwrap()).unwrap();
+    println!("{m}");
+    assert_eq!(m["model"], "field");
+    let f = &m["field"];
+    let pe: [f64; 3] =
+        serde_json::from_value(f["log10_youngs_modulus_p05_p50_p95"].clone()).unwrap();
+    assert!(
+        pe[0] <= pe[1] && pe[1] <= pe[2] && pe[0].is_finite(),
+        "{pe:?}"
+    );
+    let e = m["youngs_modulus"].as_f64().unwrap();
+    assert!((e.log10() - pe[1]).abs() < 1e-9, "E is the median");
+    assert!(f["loss_global"].as_f64().unwrap().is_finite());
+    let parts: MaterialParticles = pipe::scene::table::read(&out.join("particles.arrow")).unwrap();
+    let es: Vec<f64> = parts.youngs_pa.iter().map(|v| v.unwrap()).collect();
+    assert!(es.iter().all(|v| v.is_finite() && *v > 0.0));
+    let (lo, hi) = es
+        .iter()
+        .fold((f64::MAX, 0.0f64), |(a, b), v| (a.min(*v), b.max(*v)));
+    assert!(hi > lo, "a field: E varies over the particles ({lo}..{hi})");
+    // The weights table rebuilds the field: its E at the particles is particles.arrow's.
+    let t: FieldTable = pipe::scene::table::read(&out.join("field.material.arrow")).unwrap();
+    let field = pipe_field::Field::from_weights(&t.weights).unwrap();
+    assert_eq!(field.param_count(), f["weights"].as_u64().unwrap() as usize);
+    let pts: Vec<[f64; 3]> = parts.x.iter().map(|p| p.map(f64::from)).collect();
+    let y = field.forward(&pts).unwrap();
+    for (i, e) in es.iter().enumerate().step_by(97) {
+        // particles.arrow keeps f32 positions: E agrees to the field's slope over 1e-7 m.
+        assert!((y[2 * i] - e.log10()).abs() < 1e-4, "particle {i}");
+    }
+    let g = pipe::io::ply::read_gaussians(&out.join("field_E.ply")).unwrap();
+    assert_eq!(g.len(), parts.rendered.iter().filter(|r| **r).count());
 }
 
 /// `kill -9` of `pipe run` during `material`: the next run resumes from the last checkpoint,

@@ -185,6 +185,14 @@ fn committed_table_schemas_match_the_code() {
         ("frames", table::schema_json::<Frames>()),
         ("gaussians", table::schema_json::<Gaussians>()),
         ("metrics", table::schema_json::<Metrics>()),
+        (
+            "field_weights",
+            table::schema_json::<pipe::physics::material_field::FieldTable>(),
+        ),
+        (
+            "material_particles",
+            table::schema_json::<pipe::physics::particles::MaterialParticles>(),
+        ),
     ] {
         let path = root.join(format!("{name}.arrow.json"));
         let text = serde_json::to_string_pretty(&json).unwrap() + "\n";

@@ -1,0 +1,368 @@
+//! A per-particle material field (the seed paper's §3.2, eq. 8): a triplane + MLP
+//! ([`pipe_field`]) maps a particle's rest position (m) to its `log10 E` and its encoded `ν`
+//! (the global model's bounded map, [`Param::Nu`]'s encoding), so parts of one object can differ
+//! in stiffness. The field's box is the particles' rest box grown by [`MARGIN`] of its largest
+//! extent on every side.
+//!
+//! Chain rule from the rollout's per-particle gradients ([`crate::physics::rollout::Moduli`]) to
+//! the field's outputs: `∂L/∂(log10 E_p) = ∂L/∂E_p · E_p · ln 10`,
+//! `∂L/∂u_p = ∂L/∂ν_p · dν/du(u_p)`.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use arrow_array::{Float64Array, RecordBatch, StringArray, UInt32Array};
+use arrow_schema::{DataType, Field as ArrowField, Schema};
+use pipe_field::{Field, FieldConfig, FieldError, FieldWeights};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use super::params::{MaterialValues, Param};
+use super::rollout::Moduli;
+use crate::scene::table::{self, Table, TableError, column};
+
+/// The field's box around the rest positions: this fraction of their largest extent on every
+/// side (so the outermost particles do not sit on the planes' last nodes).
+pub const MARGIN: f64 = 0.05;
+
+/// Settings of `material: {model: field}` (the `field:` block of the stage).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct FieldSettings {
+    /// Nodes per plane side (the paper: 24).
+    #[serde(default = "resolution")]
+    pub resolution: usize,
+    /// Feature channels per plane node (summed over the three planes).
+    #[serde(default = "channels")]
+    pub channels: usize,
+    /// Width of the MLP's hidden layers.
+    #[serde(default = "hidden")]
+    pub hidden: usize,
+    /// Hidden layers of the MLP.
+    #[serde(default = "layers")]
+    pub layers: usize,
+    /// Weight of the planes' total variation (eq. 8): larger is smoother.
+    #[serde(default = "tv_weight")]
+    pub tv_weight: f64,
+    /// Epochs of the field after the global fit it starts from (default: the stage's `epochs`).
+    #[serde(default)]
+    pub epochs: Option<u32>,
+    /// Adam's first step for the planes and the MLP (decays to `lr_final`). Every weight moves
+    /// by about this much, so an output can move by many times it (0.03 moved the demo's
+    /// log10 E by 0.3 in the first epoch and raised the loss).
+    #[serde(default = "field_lr")]
+    pub lr: f64,
+    /// Adam's last step.
+    #[serde(default = "field_lr_final")]
+    pub lr_final: f64,
+    /// Seed of the planes' and the MLP's initial weights.
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn resolution() -> usize {
+    24
+}
+fn channels() -> usize {
+    16
+}
+fn hidden() -> usize {
+    64
+}
+fn layers() -> usize {
+    2
+}
+fn tv_weight() -> f64 {
+    1e-3
+}
+fn field_lr() -> f64 {
+    0.005
+}
+fn field_lr_final() -> f64 {
+    0.0005
+}
+
+impl Default for FieldSettings {
+    fn default() -> Self {
+        Self {
+            resolution: resolution(),
+            channels: channels(),
+            hidden: hidden(),
+            layers: layers(),
+            tv_weight: tv_weight(),
+            epochs: None,
+            lr: field_lr(),
+            lr_final: field_lr_final(),
+            seed: 0,
+        }
+    }
+}
+
+impl FieldSettings {
+    /// The field's configuration for `outputs` outputs.
+    pub fn config(&self, outputs: usize) -> FieldConfig {
+        FieldConfig {
+            resolution: self.resolution,
+            channels: self.channels,
+            hidden: self.hidden,
+            layers: self.layers,
+            tv_weight: self.tv_weight,
+            ..FieldConfig::material(outputs)
+        }
+    }
+}
+
+/// The field and what its outputs mean.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MaterialField {
+    /// The triplane + MLP.
+    pub field: Field,
+    /// The parameters it outputs, in output order: [`Param::E`] (as `log10 E`) and/or
+    /// [`Param::Nu`] (encoded).
+    pub outputs: Vec<Param>,
+    /// Rest positions of the particles it is evaluated at (m).
+    pub points: Vec<[f64; 3]>,
+}
+
+/// The output the field holds for `p` at value `v`.
+fn encode(p: Param, v: f64) -> f64 {
+    match p {
+        Param::E => v.log10(),
+        _ => p.encode(v),
+    }
+}
+
+/// The value of `p` from its output `y`.
+fn decode(p: Param, y: f64) -> f64 {
+    match p {
+        Param::E => 10f64.powf(y),
+        _ => p.decode(y),
+    }
+}
+
+impl MaterialField {
+    /// A field over `points` (rest positions, m) that outputs, everywhere, `start`'s value of
+    /// each of `outputs` (E and/or ν): the field starts exactly at the global model.
+    ///
+    /// # Errors
+    /// A degenerate box (all points in a plane) or a bad setting, named.
+    pub fn starting_at(
+        settings: &FieldSettings,
+        points: Vec<[f64; 3]>,
+        outputs: Vec<Param>,
+        start: &MaterialValues,
+    ) -> Result<Self, FieldError> {
+        let (lo, hi) = points.iter().fold(
+            ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]),
+            |(mut lo, mut hi), p| {
+                for a in 0..3 {
+                    lo[a] = lo[a].min(p[a]);
+                    hi[a] = hi[a].max(p[a]);
+                }
+                (lo, hi)
+            },
+        );
+        let extent = (0..3).map(|a| hi[a] - lo[a]).fold(0.0f64, f64::max);
+        let domain = pipe_field::Domain::around(&points, MARGIN * extent)?;
+        let value: Vec<f64> = outputs
+            .iter()
+            .map(|p| encode(*p, start.get(*p).unwrap_or(f64::NAN)))
+            .collect();
+        let field = Field::with_constant_output(
+            &settings.config(outputs.len()),
+            domain,
+            settings.seed,
+            &value,
+        )?;
+        Ok(Self {
+            field,
+            outputs,
+            points,
+        })
+    }
+
+    /// Per-particle `E` and `ν`: the field's where it outputs them, else `values`'.
+    ///
+    /// # Errors
+    /// A non-finite output, named.
+    pub fn moduli(&self, values: &MaterialValues) -> Result<Moduli, FieldError> {
+        let y = self.field.forward(&self.points)?;
+        let k = self.outputs.len();
+        let n = self.points.len();
+        let mut m = Moduli {
+            e: vec![values.get(Param::E).unwrap_or(f64::NAN); n],
+            nu: vec![values.get(Param::Nu).unwrap_or(f64::NAN); n],
+        };
+        for (j, p) in self.outputs.iter().enumerate() {
+            let target = if *p == Param::E { &mut m.e } else { &mut m.nu };
+            for (i, t) in target.iter_mut().enumerate() {
+                *t = decode(*p, y[i * k + j]);
+            }
+        }
+        Ok(m)
+    }
+
+    /// `∂L/∂output` per particle (point-major) from the per-particle `grad` at `moduli`.
+    pub fn output_gradient(&self, moduli: &Moduli, grad: &Moduli) -> Vec<f64> {
+        let k = self.outputs.len();
+        let mut d = vec![0.0; self.points.len() * k];
+        for (j, p) in self.outputs.iter().enumerate() {
+            for i in 0..self.points.len() {
+                d[i * k + j] = match p {
+                    Param::E => grad.e[i] * moduli.e[i] * std::f64::consts::LN_10,
+                    _ => grad.nu[i] * p.dvalue_du(p.encode(moduli.nu[i])),
+                };
+            }
+        }
+        d
+    }
+}
+
+/// The 5th, 50th and 95th percentiles of `v` (NaN-free input; nearest rank).
+pub fn percentiles(v: &[f64]) -> [f64; 3] {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    let at = |q: f64| s[((s.len() - 1) as f64 * q).round() as usize];
+    if s.is_empty() {
+        return [f64::NAN; 3];
+    }
+    [at(0.05), at(0.5), at(0.95)]
+}
+
+/// The colour of `log10 E` on the map from `lo` (blue) through green to `hi` (red), RGB in
+/// [0, 1] (a linear ramp; the legend in `material.json` names the two ends).
+pub fn colour_of(log10_e: f64, lo: f64, hi: f64) -> [f64; 3] {
+    let t = if hi > lo {
+        ((log10_e - lo) / (hi - lo)).clamp(0.0, 1.0)
+    } else {
+        0.5
+    };
+    if t < 0.5 {
+        let s = t * 2.0;
+        [0.0, s, 1.0 - s]
+    } else {
+        let s = (t - 0.5) * 2.0;
+        [s, 1.0 - s, 0.0]
+    }
+}
+
+/// The field's weights as a long table (`field.material.arrow`): one row per number, with its
+/// tensor's name and shape; the configuration and box in the schema metadata.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FieldTable {
+    /// The weights.
+    pub weights: FieldWeights,
+}
+
+impl Table for FieldTable {
+    const NAME: &'static str = "field_weights";
+    const VERSION: u32 = 1;
+
+    fn schema() -> Schema {
+        Schema::new(vec![
+            ArrowField::new("tensor", DataType::Utf8, false),
+            ArrowField::new("shape", DataType::Utf8, false),
+            ArrowField::new("index", DataType::UInt32, false),
+            ArrowField::new("value", DataType::Float64, false),
+        ])
+        .with_metadata([("schema_version".to_string(), Self::VERSION.to_string())])
+    }
+
+    fn to_batch(&self) -> RecordBatch {
+        let (mut name, mut shape, mut index, mut value) = (vec![], vec![], vec![], vec![]);
+        for t in &self.weights.tensors {
+            let s = t
+                .shape
+                .iter()
+                .map(|d| d.to_string())
+                .collect::<Vec<_>>()
+                .join("x");
+            for (i, v) in t.values.iter().enumerate() {
+                name.push(t.name.clone());
+                shape.push(s.clone());
+                index.push(i as u32);
+                value.push(*v);
+            }
+        }
+        let meta = serde_json::json!({
+            "config": self.weights.config,
+            "domain_min": self.weights.domain_min,
+            "domain_max": self.weights.domain_max,
+        });
+        let schema = Self::schema();
+        let mut md = schema.metadata().clone();
+        md.insert("field".to_string(), meta.to_string());
+        RecordBatch::try_new(
+            Arc::new(schema.with_metadata(md)),
+            vec![
+                Arc::new(StringArray::from(name)),
+                Arc::new(StringArray::from(shape)),
+                Arc::new(UInt32Array::from(index)),
+                Arc::new(Float64Array::from(value)),
+            ],
+        )
+        .expect("columns match the schema")
+    }
+
+    fn from_batch(b: &RecordBatch, path: &Path) -> Result<Self, TableError> {
+        let bad = |m: String| TableError::Invalid {
+            path: path.to_path_buf(),
+            message: m,
+        };
+        let meta: serde_json::Value = b
+            .schema()
+            .metadata()
+            .get("field")
+            .ok_or_else(|| bad("no `field` metadata (configuration and box)".into()))
+            .and_then(|s| {
+                serde_json::from_str(s).map_err(|e| bad(format!("`field` metadata: {e}")))
+            })?;
+        let config = serde_json::from_value(meta["config"].clone())
+            .map_err(|e| bad(format!("`field` metadata `config`: {e}")))?;
+        let corner = |k: &str| -> Result<[f64; 3], TableError> {
+            serde_json::from_value(meta[k].clone())
+                .map_err(|e| bad(format!("`field` metadata `{k}`: {e}")))
+        };
+        let names = column::<StringArray>(b, "tensor");
+        let shapes = column::<StringArray>(b, "shape");
+        let values = column::<Float64Array>(b, "value");
+        let mut tensors: Vec<pipe_field::weights::NamedTensor> = Vec::new();
+        for i in 0..b.num_rows() {
+            let name = names.value(i);
+            if tensors.last().is_none_or(|t| t.name != name) {
+                let shape = shapes
+                    .value(i)
+                    .split('x')
+                    .map(|d| d.parse::<usize>())
+                    .collect::<Result<Vec<_>, _>>()
+                    .map_err(|e| bad(format!("row {i}: shape `{}`: {e}", shapes.value(i))))?;
+                tensors.push(pipe_field::weights::NamedTensor {
+                    name: name.to_string(),
+                    shape,
+                    values: Vec::new(),
+                });
+            }
+            if let Some(t) = tensors.last_mut() {
+                t.values.push(values.value(i));
+            }
+        }
+        Ok(Self {
+            weights: FieldWeights {
+                config,
+                domain_min: corner("domain_min")?,
+                domain_max: corner("domain_max")?,
+                tensors,
+            },
+        })
+    }
+}
+
+/// Writes the field's weights to `path` (atomically, as every table).
+pub fn write_weights(path: &Path, field: &Field) -> Result<(), TableError> {
+    table::write(
+        path,
+        &FieldTable {
+            weights: field.weights(),
+        },
+    )
+}
