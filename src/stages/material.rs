@@ -208,7 +208,8 @@ pub struct FieldSummary {
     pub log10_youngs_modulus_p05_p50_p95: [f64; 3],
     pub poisson_ratio_p05_p50_p95: [f64; 3],
     /// `field_E.ply`: each Gaussian coloured by its log10 E, blue at `colour_map_log10_e[0]`,
-    /// green midway, red at `colour_map_log10_e[1]`.
+    /// green midway, red at `colour_map_log10_e[1]` (the 5th to 95th percentile, at least a
+    /// decade about the median).
     pub colour_map_log10_e: [f64; 2],
     /// Loss over the frames at the global fit the field started from.
     pub loss_global: f64,
@@ -628,7 +629,13 @@ impl TypedStage for MaterialStage {
                 let log_e: Vec<f64> = f.moduli.e.iter().map(|e| e.log10()).collect();
                 let pe = percentiles(&log_e);
                 let pn = percentiles(&f.moduli.nu);
-                let map = [pe[0].min(pe[2] - 0.5), pe[2].max(pe[0] + 0.5)];
+                // p5..p95, widened to a decade about the median when narrower (a homogeneous
+                // object shows as one colour, not as noise stretched over the whole map).
+                let map = if pe[2] - pe[0] >= 1.0 {
+                    [pe[0], pe[2]]
+                } else {
+                    [pe[1] - 0.5, pe[1] + 0.5]
+                };
                 write_weights(&ctx.out_dir.join("field.material.arrow"), &f.field.field)
                     .map_err(StageError::failed)?;
                 let mut g = object.gaussians.clone();
