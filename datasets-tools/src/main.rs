@@ -8,11 +8,16 @@
 //! `datasets-tools composite SRC DST --texture shadow-greys|dark-grey --frames 0,5,9,13`
 //! writes a matting test scene: SRC's cameras, plates and object silhouettes, the object
 //! re-textured adversarially and its shadow cast on the plates ([`composite`]).
+//!
+//! `datasets-tools two-material DST [--size 100] [--frames 14] [--views 11] [--ratio 30] ...`
+//! writes a generated scene of a bar whose halves differ in Young's modulus, simulated with
+//! per-particle materials and ray-traced as spheres ([`two_material`]).
 
 mod composite;
 mod resample;
 mod shadow;
 mod texture;
+mod two_material;
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -75,6 +80,10 @@ enum Command {
         #[arg(long, default_value_t = 2)]
         factor: u32,
     },
+    /// Write a generated scene: a bar whose halves differ in Young's modulus (--ratio),
+    /// simulated with per-particle materials and ray-traced as shaded spheres, with its
+    /// ground truth (gt/params.json, gt/particles, gt/masks).
+    TwoMaterial(two_material::Args),
 }
 
 fn main() -> Result<()> {
@@ -103,6 +112,7 @@ fn main() -> Result<()> {
             views: &views,
             factor,
         }),
+        Command::TwoMaterial(args) => two_material::run(&args),
     }
 }
 

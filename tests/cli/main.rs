@@ -13,4 +13,5 @@ mod simulate;
 mod spec_errors;
 mod support;
 mod tables;
+mod two_material;
 mod warmup;
