@@ -225,7 +225,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 4;
+    const VERSION: u32 = 5;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 
@@ -476,13 +476,11 @@ impl TypedStage for MaterialStage {
                 Ok(())
             };
             let mut taken = None;
+            let mut full_gradient = false;
             let out = match (p.optimizer, p.truncate) {
                 (Optimizer::LineSearch, truncate) => {
-                    let out = rollout
-                        .run(&mut loss, Wants::Material(truncate))
-                        .map_err(|e| fail(epoch, e))?;
-                    let g = grad_u(&u, out.material.as_ref().expect("a gradient")).map_err(
-                        |message| {
+                    let gradient_of = |out: &crate::physics::rollout::Outcome| {
+                        grad_u(&u, out.material.as_ref().expect("a gradient")).map_err(|message| {
                             fail(
                                 epoch,
                                 RolloutError::Loss {
@@ -490,19 +488,41 @@ impl TypedStage for MaterialStage {
                                     message,
                                 },
                             )
-                        },
-                    )?;
-                    let it = search
-                        .iterate(&u, out.loss(), &g, |trial| {
-                            let v = values_of(trial);
-                            Rollout {
-                                material: &v,
-                                ..rollout
-                            }
-                            .run(&mut loss, Wants::Loss)
-                            .map(|o| o.loss())
                         })
+                    };
+                    let out = rollout
+                        .run(&mut loss, Wants::Material(truncate))
                         .map_err(|e| fail(epoch, e))?;
+                    let g = gradient_of(&out)?;
+                    let trial_loss = |trial: &[f64], loss: &mut ViewsLoss<'_>| {
+                        let v = values_of(trial);
+                        Rollout {
+                            material: &v,
+                            ..rollout
+                        }
+                        .run(loss, Wants::Loss)
+                        .map(|o| o.loss())
+                    };
+                    let before = search.clone();
+                    let mut it = search
+                        .iterate(&u, out.loss(), &g, |t| trial_loss(t, &mut loss))
+                        .map_err(|e| fail(epoch, e))?;
+                    if it.step == 0.0 && truncate == Truncate::Frame {
+                        // The truncated gradient is not the loss's own: when no step along it
+                        // lowers the loss, the whole rollout's gradient decides (one more
+                        // rollout with its adjoint). On a generated two-material bar the
+                        // truncated gradient at E = 1e5 Pa pointed stiffer while the loss fell
+                        // softer, and the descent never left its guess.
+                        let full = rollout
+                            .run(&mut loss, Wants::Material(Truncate::None))
+                            .map_err(|e| fail(epoch, e))?;
+                        let g = gradient_of(&full)?;
+                        search = before;
+                        it = search
+                            .iterate(&u, full.loss(), &g, |t| trial_loss(t, &mut loss))
+                            .map_err(|e| fail(epoch, e))?;
+                        full_gradient = true;
+                    }
                     converged = search.converged();
                     u = it.u.clone();
                     taken = Some(it);
@@ -548,6 +568,7 @@ impl TypedStage for MaterialStage {
             metric("train_psnr", psnr);
             metric("substeps", out.substeps.iter().sum::<usize>() as f64);
             if let Some(it) = &taken {
+                metric("full_gradient", f64::from(u8::from(full_gradient)));
                 metric("step", it.step);
                 metric("trials", it.trials as f64);
                 metric("loss_after_step", it.loss);
