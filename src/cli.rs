@@ -392,7 +392,7 @@ fn execute(
             // The report follows a run that evaluated (ran `evaluate`, not only found it cached).
             let evaluated = report.stages.iter().any(|(name, _, o)| {
                 matches!(o, crate::pipeline::runner::Outcome::Ran { .. })
-                    && registry.get(name).is_some_and(|s| s.kind() == "evaluate")
+                    && p.stage(name).is_some_and(|s| s.kind == "evaluate")
             });
             if let (true, false, Some(publisher)) = (evaluated, *no_report, publisher) {
                 let out = report_out

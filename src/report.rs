@@ -128,10 +128,7 @@ pub fn collect(
     let (_, planned) = ws.plan(pipeline, registry)?;
     let mut stages = Vec::new();
     for p in &planned {
-        let kind = registry
-            .get(&p.name)
-            .map(|s| s.kind().to_string())
-            .unwrap_or_else(|| p.name.clone());
+        let kind = p.key_material.kind.clone();
         let params = pipeline
             .stage(&p.name)
             .map(|s| s.params.clone())

@@ -324,7 +324,7 @@ fn result_of(
         out.stage_wall_s.insert(p.name.clone(), m.wall_s);
         out.peak_rss_bytes = out.peak_rss_bytes.max(m.peak_rss_bytes);
         out.keys.insert(p.name.clone(), p.key.clone());
-        let kind = registry.get(&p.name).map(|s| s.kind()).unwrap_or("");
+        let kind = p.key_material.kind.as_str();
         if kind == "evaluate" {
             let path = ws.store.entry_dir(&p.name, &p.key).join("evaluation.json");
             out.evaluation =

@@ -7,6 +7,7 @@ pub mod pacnerf;
 pub mod parquet;
 pub mod ply;
 pub mod resample;
+pub mod video;
 
 /// A JSON file that cannot be written or read.
 #[derive(Debug, thiserror::Error)]

@@ -50,7 +50,7 @@ impl Graph {
                     needs.clone()
                 }
                 None => registry
-                    .get(&s.name)
+                    .get(&s.kind)
                     .map(|st| st.default_upstream())
                     .unwrap_or_default()
                     .iter()

@@ -232,7 +232,7 @@ impl Workspace {
             let spec = pipeline
                 .stage(name)
                 .expect("graph names come from the pipeline");
-            let stage = registry.get(name).expect("spec validated the kind");
+            let stage = registry.get(&spec.kind).expect("spec validated the kind");
             let mut inputs = BTreeMap::new();
             let files = stage
                 .inputs(&spec.params, &pipeline.scene)
@@ -359,7 +359,7 @@ impl Workspace {
             if interrupt.load(std::sync::atomic::Ordering::SeqCst) {
                 return Err(RunError::Interrupted(p.name.clone()));
             }
-            let stage = registry.get(&p.name).expect("validated");
+            let stage = registry.get(&p.key_material.kind).expect("validated");
             if let (StageState::Cached(m), false) = (&p.state, forced.contains(&p.name)) {
                 reporter.stage_finished(i, n, &p.name, &format!("cached ({})", short(&p.key)));
                 entries.insert(
@@ -405,7 +405,8 @@ impl Workspace {
                 reporter,
                 interrupt,
             )
-            .with_checkpoints(&checkpoints);
+            .with_checkpoints(&checkpoints)
+            .with_file(&pipeline.file);
             let result = stage.run(&spec.params, &mut ctx).and_then(|()| {
                 if ctx.metrics.is_empty() {
                     Ok(())

@@ -10,7 +10,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
 
-use super::stage::{ParamError, Registry};
+use super::stage::{ParamError, Registry, Stage};
 use super::yaml::{self, Position, Positions};
 
 /// A named bundle of stage defaults trading speed for accuracy (ARCHITECTURE §9).
@@ -168,8 +168,11 @@ pub enum BoundaryItem {
 /// One stage as resolved from the file.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StageSpec {
-    /// Name (= kind) in the file.
+    /// Name in the file: the kind, or `<kind>.<instance>` for each named instance of a kind
+    /// that takes a map of them (`edit: {press: {...}}` gives the stage `edit.press`).
     pub name: String,
+    /// Stage kind (the registry's key).
+    pub kind: String,
     /// Explicit upstream stages (`needs:`), if the file gives them.
     pub needs: Option<Vec<String>>,
     /// Resolved parameters (defaults ⊕ preset ⊕ file ⊕ `--set`), canonical.
@@ -308,6 +311,7 @@ pub fn parse(
             path: e.path().to_string().trim_start_matches('.').to_string(),
             message: e.inner().to_string(),
         };
+        let sets: Vec<&SetOverride> = sets.iter().collect();
         ctx.param_error("scene", &pe, &scene_keys(), &sets)
     })?;
     // A relative `path` in the file is relative to the file's folder; one given on the
@@ -351,54 +355,94 @@ pub fn parse(
         let Some(stage) = registry.get(&stage_name) else {
             return Err(ctx.unknown_stage(&stage_name, &kinds));
         };
-        let mut entry = match entry {
-            Value::Null => Map::new(),
-            Value::Object(m) => m,
+        if !stage.named_instances() {
+            let sets: Vec<&SetOverride> = sets.iter().filter(|s| s.stage == stage_name).collect();
+            stages.push(resolve_stage(
+                &ctx,
+                stage.as_ref(),
+                (&stage_name, &stage_path),
+                entry,
+                preset,
+                (&sets, &sets),
+            )?);
+            continue;
+        }
+        // A map of named instances, each its own stage `<kind>.<name>` (its own cache entry).
+        // `--set edit.press.frames=20` sets `frames` of instance `press`.
+        let mut whole = entry;
+        for s in sets.iter().filter(|s| s.stage == stage_name) {
+            // A key of an instance the file lacks is a slip (`--set edit.name={...}` adds one).
+            let names: Vec<String> = whole
+                .as_object()
+                .map(|m| m.keys().cloned().collect())
+                .unwrap_or_default();
+            if s.key_path.len() > 1 && !names.contains(&s.key_path[0]) {
+                return Err(SpecError {
+                    file: ctx.file.clone(),
+                    position: None,
+                    message: format!(
+                        "--set {}: the pipeline has no {stage_name} `{}` (it has {})",
+                        s.raw,
+                        s.key_path[0],
+                        if names.is_empty() {
+                            "none".to_string()
+                        } else {
+                            names.join(", ")
+                        }
+                    ),
+                    hint: suggest(&s.key_path[0], &names).map(|k| format!("did you mean `{k}`?")),
+                });
+            }
+            set_path(&mut whole, &s.key_path, s.value.clone());
+        }
+        let instances = match whole {
+            Value::Object(m) if !m.is_empty() => m,
             other => {
                 return Err(ctx.at(
                     &stage_path,
-                    format!("stage `{stage_name}` takes a mapping of parameters, found {other}"),
+                    format!(
+                        "stage `{stage_name}` takes a mapping of names to parameters, one per \
+                         {stage_name} (e.g. `{stage_name}: {{press: {{...}}}}`), found {}",
+                        if other.is_null() {
+                            "nothing".to_string()
+                        } else {
+                            other.to_string()
+                        }
+                    ),
                 ));
             }
         };
-        let needs = match entry.remove("needs") {
-            None => None,
-            Some(Value::String(s)) => Some(vec![s]),
-            Some(Value::Array(items)) => Some(
-                items
-                    .into_iter()
-                    .map(|v| match v {
-                        Value::String(s) => Ok(s),
-                        other => Err(ctx.at(
-                            &format!("{stage_path}.needs"),
-                            format!("`needs` lists stage names, found {other}"),
-                        )),
-                    })
-                    .collect::<Result<Vec<_>, _>>()?,
-            ),
-            Some(other) => {
-                return Err(ctx.at(
-                    &format!("{stage_path}.needs"),
-                    format!("`needs` lists stage names, found {other}"),
+        for (instance, entry) in instances {
+            let path = format!("{stage_path}.{instance}");
+            if instance.is_empty()
+                || !instance
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+            {
+                return Err(ctx.err(
+                    ctx.positions.key(&path),
+                    format!(
+                        "invalid name `{instance}` in {stage_path}: a name is made of letters, \
+                         digits, `_` and `-` (it names the cache entry)"
+                    ),
+                    None,
                 ));
             }
-        };
-        let mut merged = stage.preset_params(preset);
-        deep_merge(&mut merged, Value::Object(entry));
-        for s in sets.iter_mut().filter(|s| s.stage == stage_name) {
-            set_path(&mut merged, &s.key_path, s.value.clone());
+            let name = format!("{stage_name}.{instance}");
+            let sets: Vec<&SetOverride> = sets
+                .iter()
+                .filter(|s| s.stage == stage_name && s.key_path.first() == Some(&instance))
+                .collect();
+            // The sets are in `entry` already; they only name themselves in messages.
+            stages.push(resolve_stage(
+                &ctx,
+                stage.as_ref(),
+                (&name, &path),
+                entry,
+                preset,
+                (&[], &sets),
+            )?);
         }
-        let params = stage.resolve_params(&merged).map_err(|e| {
-            let mut keys = schema_keys(&stage.params_schema());
-            keys.push("needs".into());
-            ctx.param_error(&stage_path, &e, &keys, &sets)
-        })?;
-        stages.push(StageSpec {
-            position: ctx.positions.key(&stage_path),
-            name: stage_name,
-            needs,
-            params,
-        });
     }
     Ok(Pipeline {
         file: path.to_path_buf(),
@@ -407,6 +451,69 @@ pub fn parse(
         scene,
         stages,
         sweep,
+    })
+}
+
+/// One stage's entry resolved: `needs:` taken out, the preset's parameters under the file's,
+/// `apply` (`--set` of this stage) on top, validated by the stage; an error caused by one of
+/// `origin` says so. `name` and `stage_path` (`stages.<name>`, or `stages.<kind>.<instance>`)
+/// name it.
+fn resolve_stage(
+    ctx: &Ctx,
+    stage: &dyn Stage,
+    (name, stage_path): (&str, &str),
+    entry: Value,
+    preset: Preset,
+    (apply, origin): (&[&SetOverride], &[&SetOverride]),
+) -> Result<StageSpec, SpecError> {
+    let mut entry = match entry {
+        Value::Null => Map::new(),
+        Value::Object(m) => m,
+        other => {
+            return Err(ctx.at(
+                stage_path,
+                format!("stage `{name}` takes a mapping of parameters, found {other}"),
+            ));
+        }
+    };
+    let needs = match entry.remove("needs") {
+        None => None,
+        Some(Value::String(s)) => Some(vec![s]),
+        Some(Value::Array(items)) => Some(
+            items
+                .into_iter()
+                .map(|v| match v {
+                    Value::String(s) => Ok(s),
+                    other => Err(ctx.at(
+                        &format!("{stage_path}.needs"),
+                        format!("`needs` lists stage names, found {other}"),
+                    )),
+                })
+                .collect::<Result<Vec<_>, _>>()?,
+        ),
+        Some(other) => {
+            return Err(ctx.at(
+                &format!("{stage_path}.needs"),
+                format!("`needs` lists stage names, found {other}"),
+            ));
+        }
+    };
+    let mut merged = stage.preset_params(preset);
+    deep_merge(&mut merged, Value::Object(entry));
+    for s in apply {
+        set_path(&mut merged, &s.key_path, s.value.clone());
+    }
+    let params = stage.resolve_params(&merged).map_err(|e| {
+        let mut keys = schema_keys(&stage.params_schema());
+        keys.push("needs".into());
+        ctx.param_error(stage_path, &e, &keys, origin)
+    })?;
+    Ok(StageSpec {
+        position: ctx.positions.key(stage_path),
+        name: name.to_string(),
+        kind: stage.kind().to_string(),
+        needs,
+        params,
     })
 }
 
@@ -626,7 +733,7 @@ impl Ctx {
         prefix: &str,
         e: &ParamError,
         valid: &[String],
-        sets: &[SetOverride],
+        sets: &[&SetOverride],
     ) -> SpecError {
         let full = if e.path.is_empty() {
             prefix.to_string()
@@ -715,6 +822,20 @@ pub fn json_schema(registry: &Registry) -> Value {
                 );
             }
             m.insert("type".into(), serde_json::json!(["object", "null"]));
+        }
+        if stage.named_instances() {
+            // A map of names to parameters, each name a stage of its own.
+            let description = stage.description();
+            if let Value::Object(m) = &mut s {
+                m.remove("description");
+            }
+            s = serde_json::json!({
+                "description": format!("{description}. A mapping of names to parameters: each name is a stage `{}.<name>` with its own cache entry.", stage.kind()),
+                "type": "object",
+                "minProperties": 1,
+                "propertyNames": {"pattern": "^[A-Za-z0-9_-]+$"},
+                "additionalProperties": s
+            });
         }
         stage_props.insert(stage.kind().to_string(), s);
     }

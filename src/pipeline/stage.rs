@@ -134,6 +134,7 @@ pub struct StageContext<'a> {
     interrupt: &'a AtomicBool,
     checkpoints: Option<&'a Checkpoints>,
     resumed: Option<Saved>,
+    file: Option<&'a Path>,
 }
 
 impl std::fmt::Debug for StageContext<'_> {
@@ -168,6 +169,22 @@ impl<'a> StageContext<'a> {
             interrupt,
             checkpoints: None,
             resumed: None,
+            file: None,
+        }
+    }
+
+    /// The pipeline file the stage belongs to, for messages (the runner sets it).
+    pub fn with_file(mut self, file: &'a Path) -> Self {
+        self.file = Some(file);
+        self
+    }
+
+    /// Where a parameter of this stage is written, for messages: `FILE: stages.NAME` (the
+    /// file when known).
+    pub fn location(&self) -> String {
+        match self.file {
+            Some(f) => format!("{}: stages.{}", f.display(), self.name),
+            None => format!("stages.{}", self.name),
         }
     }
 
@@ -314,6 +331,10 @@ pub trait Stage: Send + Sync {
     fn version(&self) -> u32;
     /// Stage kinds whose outputs this stage reads when the file does not say `needs:`.
     fn default_upstream(&self) -> &'static [&'static str];
+    /// Whether the file gives a map of named instances (`edit: {press: {...}, drop: {...}}`),
+    /// each its own stage `<kind>.<name>` with its own parameters and cache entry, rather than
+    /// one set of parameters.
+    fn named_instances(&self) -> bool;
     /// Output tables and their schema versions (part of the cache key).
     fn output_schemas(&self) -> Vec<(&'static str, u32)>;
     /// JSON Schema of the parameters.
@@ -351,6 +372,8 @@ pub trait TypedStage: Send + Sync {
     const DESCRIPTION: &'static str;
     /// See [`Stage::default_upstream`].
     const UPSTREAM: &'static [&'static str] = &[];
+    /// See [`Stage::named_instances`].
+    const NAMED_INSTANCES: bool = false;
     /// See [`Stage::output_schemas`].
     fn output_schemas(&self) -> Vec<(&'static str, u32)>;
     /// See [`Stage::preset_params`].
@@ -396,6 +419,9 @@ impl<T: TypedStage> Stage for T {
     }
     fn default_upstream(&self) -> &'static [&'static str] {
         T::UPSTREAM
+    }
+    fn named_instances(&self) -> bool {
+        T::NAMED_INSTANCES
     }
     fn output_schemas(&self) -> Vec<(&'static str, u32)> {
         TypedStage::output_schemas(self)

@@ -28,7 +28,6 @@ pub mod setup;
 pub mod spec;
 
 use std::path::{Path, PathBuf};
-use std::sync::mpsc::SyncSender;
 use std::time::Instant;
 
 use glam::{DMat3, DVec3};
@@ -461,7 +460,7 @@ fn fill_splats(g: &Gaussians, n: usize, filter: f64) -> Vec<Splat> {
 /// The deformation gradients the splats follow: the particles' `F`, except for the Newtonian
 /// fluid, whose `F` holds only the volume ratio (`diag(J, 1, 1)`): its splats swell or shrink
 /// evenly, `J^(1/3) I`.
-fn splat_deformation(
+pub fn splat_deformation(
     family: crate::pipeline::spec::MaterialFamily,
     f: &[DMat3],
 ) -> std::borrow::Cow<'_, [DMat3]> {
@@ -637,51 +636,14 @@ impl ModelVisitor for Job<'_> {
 }
 
 impl Job<'_> {
-    fn substeps<M: Constitutive>(
-        &self,
-        sim: &Simulator<M>,
-        state: &State,
-        frame: u32,
-    ) -> Result<FrameStep, SimulateError> {
-        frame_step(
-            self.spec,
-            &self.body,
-            &self.body.material,
-            sim,
-            state,
-            frame,
-        )
-    }
-
     fn simulate<M: Constitutive + Clone + 'static>(
         mut self,
         model: M,
     ) -> Result<Done, SimulateError> {
         let mut state = std::mem::replace(&mut self.body.state, State::at_rest(Vec::new()));
         let spec = self.spec;
-        let setup = &self.body.setup;
-        let cfg = self.body.config(spec, self.precision);
-        let setup_err = |source| SimulateError::Simulation {
-            context: format!(
-                "setting up the simulator (dx {} m, {})",
-                fmt_num(setup.dx),
-                match setup.domain {
-                    Some(d) => format!("domain {:?} to {:?} m", d.lo.to_array(), d.hi.to_array()),
-                    None => "grid following the particles".to_string(),
-                }
-            ),
-            source,
-        };
-        let sim = Simulator::new(model, cfg).map_err(setup_err)?;
-        // Validated and held in the domain once, then kept in the engine from frame to frame.
-        let mut stepper = sim
-            .stepper(&mut state, &self.body.material)
-            .map_err(setup_err)?;
-        stepper.watch_contacts();
-        // Refuse an unstable fixed substep count before writing anything.
-        if self.frames > 1 {
-            self.substeps(&sim, &state, 1)?;
-        }
+        let sim = simulator(model, spec, &self.body, self.precision)?;
+        let mut stepper = stepper(&sim, spec, &self.body, &mut state, self.frames)?;
 
         let removed = output::prepare_dir(self.out, self.frames, self.gaussians.is_some())?;
         if !removed.is_empty() {
@@ -691,6 +653,9 @@ impl Job<'_> {
                 self.out.display()
             ));
         }
+        // Only the input particles are written; the fillers follow them unseen.
+        let n_out = self.body.n_input;
+        let (gaussians, family) = (self.gaussians, spec.material.family);
         // The frames are written on a thread of their own, while the next one simulates
         // ([`output::write_frames`]); one frame waits at most.
         std::thread::scope(|scope| {
@@ -701,12 +666,45 @@ impl Job<'_> {
                 w.join()
                     .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
             };
-            let run = self.frames(&sim, &mut stepper, &mut state, &tx);
+            let mut send = |frame: u32, state: &State, _: Option<&FrameStats>| {
+                let splats = gaussians.map(|g| match frame {
+                    0 => g.clone(),
+                    _ => deform(
+                        g,
+                        &state.x[..n_out],
+                        &splat_deformation(family, &state.f[..n_out]),
+                    ),
+                });
+                let out = FrameOut::new(frame, &state.x[..n_out], &state.v[..n_out], splats);
+                Ok(tx.send(ToWriter::Frame(Box::new(out))).is_ok())
+            };
+            let run = run_frames(
+                Frames {
+                    spec,
+                    body: &self.body,
+                    sim: &sim,
+                    count: self.frames,
+                    progress: self.progress,
+                    deformation: gaussians.is_some(),
+                },
+                &mut stepper,
+                &mut state,
+                &mut send,
+            );
             let finish = matches!(run, Ok(Some(_))) && tx.send(ToWriter::Finish).is_ok();
             drop(tx);
             let written = join(writer);
             match run? {
-                Some(done) if finish => written.map(|()| done),
+                Some(run) if finish => written.map(|()| Done {
+                    particles_out: n_out,
+                    stats: run.stats,
+                    warnings: run.warnings,
+                    setup_s: run
+                        .first_substep
+                        .saturating_duration_since(self.started)
+                        .as_secs_f64(),
+                    substeps_s: run.substeps_s,
+                }),
                 _ => Err(written.err().unwrap_or_else(|| SimulateError::Io {
                     path: out_dir.to_path_buf(),
                     action: "write the frames",
@@ -715,149 +713,234 @@ impl Job<'_> {
             }
         })
     }
+}
 
-    /// Simulates frames `1..frames` from `state` (in `stepper`), handing every frame, 0
-    /// included, to the writer on `tx`; `None` when the writer stopped (its error is the
-    /// run's).
-    fn frames<M: Constitutive>(
-        &self,
-        sim: &Simulator<M>,
-        stepper: &mut Stepper<'_, M>,
-        state: &mut State,
-        tx: &SyncSender<ToWriter>,
-    ) -> Result<Option<Done>, SimulateError> {
-        let spec = self.spec;
-        // Only the input particles are written; the fillers follow them unseen.
-        let n_out = self.body.n_input;
-        let frame0 = FrameOut::new(
-            0,
-            &state.x[..n_out],
-            &state.v[..n_out],
-            self.gaussians.cloned(),
-        );
-        if tx.send(ToWriter::Frame(Box::new(frame0))).is_err() {
+/// The simulator of `body` under `spec` in `precision`, with `model` (the family's).
+pub fn simulator<M: Constitutive>(
+    model: M,
+    spec: &SimSpec,
+    body: &Body,
+    precision: pipe_mpm::Precision,
+) -> Result<Simulator<M>, SimulateError> {
+    let setup = &body.setup;
+    Simulator::new(model, body.config(spec, precision)).map_err(|source| setup_error(setup, source))
+}
+
+fn setup_error(setup: &Setup, source: MpmError) -> SimulateError {
+    SimulateError::Simulation {
+        context: format!(
+            "setting up the simulator (dx {} m, {})",
+            fmt_num(setup.dx),
+            match setup.domain {
+                Some(d) => format!("domain {:?} to {:?} m", d.lo.to_array(), d.hi.to_array()),
+                None => "grid following the particles".to_string(),
+            }
+        ),
+        source,
+    }
+}
+
+/// `state` (every particle of `body`) loaded into `sim`'s engine, validated and held in the
+/// domain, its boundary contacts counted; refuses a fixed substep count above the stability
+/// limit of the first frame before anything is written.
+pub fn stepper<'s, M: Constitutive>(
+    sim: &'s Simulator<M>,
+    spec: &SimSpec,
+    body: &Body,
+    state: &mut State,
+    frames: u32,
+) -> Result<Stepper<'s, M>, SimulateError> {
+    let mut stepper = sim
+        .stepper(state, &body.material)
+        .map_err(|source| setup_error(&body.setup, source))?;
+    stepper.watch_contacts();
+    if frames > 1 {
+        frame_step(spec, body, &body.material, sim, state, 1)?;
+    }
+    Ok(stepper)
+}
+
+/// What [`run_frames`] simulates.
+pub struct Frames<'a, M: Constitutive> {
+    /// The simulation file (frame time, substeps).
+    pub spec: &'a SimSpec,
+    /// The body (its settings, forces and material).
+    pub body: &'a Body,
+    /// Its simulator.
+    pub sim: &'a Simulator<M>,
+    /// Frames, frame 0 (the initial state) included.
+    pub count: u32,
+    /// Progress reporting.
+    pub progress: &'a dyn Progress,
+    /// Whether each frame's state needs `C` and `F` too (splats), or only `x` and `v`.
+    pub deformation: bool,
+}
+
+impl<M: Constitutive> std::fmt::Debug for Frames<'_, M> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Frames")
+            .field("count", &self.count)
+            .field("deformation", &self.deformation)
+            .finish_non_exhaustive()
+    }
+}
+
+/// What [`run_frames`] measured.
+#[derive(Debug, Clone)]
+pub struct Stepped {
+    /// Per frame `1..count`: substeps, limits, contacts per boundary.
+    pub stats: Vec<FrameStats>,
+    /// Things the user should know (domain walls acting, unstable fixed steps).
+    pub warnings: Vec<String>,
+    /// Time inside the substeps (s).
+    pub substeps_s: f64,
+    /// When the first substep started (after frame 0 was handed over).
+    pub first_substep: Instant,
+}
+
+/// A frame's consumer in [`run_frames`]: the frame (0 = the initial state), the whole state
+/// (every particle: the input ones, then the fillers) and, after frame 0, its statistics.
+/// `Ok(false)` stops the run without an error of its own (the consumer's follows).
+pub type FrameSink<'a> =
+    dyn FnMut(u32, &State, Option<&FrameStats>) -> Result<bool, SimulateError> + 'a;
+
+/// Simulates frames `1..count` of `state` (kept in `stepper`), each with the substeps its
+/// stability limit needs ([`frame_step`]: the speed bound includes the frame's forces and
+/// impulses), handing every frame, 0 included, to `sink`. `None` when the sink stopped. The
+/// one frame loop of `pipe simulate` and the `edit` stage: a NaN or Inf stops it with the
+/// engine's error (substep, quantity, particle), particles held at the walls are counted,
+/// never dropped.
+pub fn run_frames<M: Constitutive>(
+    run: Frames<'_, M>,
+    stepper: &mut Stepper<'_, M>,
+    state: &mut State,
+    sink: &mut FrameSink<'_>,
+) -> Result<Option<Stepped>, SimulateError> {
+    let Frames {
+        spec,
+        body,
+        sim,
+        count,
+        progress,
+        deformation,
+    } = run;
+    if !sink(0, state, None)? {
+        return Ok(None);
+    }
+    let mut stats = Vec::new();
+    let mut warnings = Vec::new();
+    let first_substep = Instant::now();
+    let mut substeps_s = 0.0;
+    progress.start("simulate", u64::from(count.saturating_sub(1)));
+    for frame in 1..count {
+        let FrameStep {
+            substeps: n_sub,
+            reason,
+            stable,
+            max_speed,
+            speed,
+            unstable,
+        } = frame_step(spec, body, &body.material, sim, state, frame)?;
+        let dt = spec.frame_dt / n_sub as f64;
+        if unstable {
+            let w = format!(
+                "frame {frame}: `substeps` = {n_sub} gives dt = {dt:.3e} s (CFL number \
+                 {:.2}), above the largest step a fixed count may take, {:.3e} s \
+                 (allow_unstable)",
+                stable.cfl_number(dt),
+                stable.max_fixed_dt()
+            );
+            progress.log(&format!("warning: {w}"));
+            warnings.push(w);
+        }
+        let t0 = f64::from(frame - 1) * spec.frame_dt;
+        let stepping = Instant::now();
+        let rep = stepper.advance(t0, dt, n_sub);
+        substeps_s += stepping.elapsed().as_secs_f64();
+        let rep = rep.map_err(|source| {
+            if let MpmError::Diverged { speed, cells, .. } = source {
+                return SimulateError::Diverged {
+                    frame,
+                    speed,
+                    cells,
+                };
+            }
+            let why = if unstable {
+                " (the substep is above the stability limit: allow_unstable)"
+            } else {
+                ""
+            };
+            SimulateError::Simulation {
+                context: format!(
+                    "frame {frame} ({n_sub} substeps of {dt:.3e} s from t = {t0:.4} s){why}"
+                ),
+                source,
+            }
+        })?;
+        // The next frame's substeps need the velocities; splats need `F` too.
+        let read = if deformation {
+            stepper.read(state)
+        } else {
+            stepper.read_motion(state)
+        };
+        read.map_err(|source| SimulateError::Simulation {
+            context: format!("frame {frame}: reading the state"),
+            source,
+        })?;
+        // Fillers count too: a boundary acts on the whole object.
+        let contacts = stepper.take_contacts();
+        let walls = body
+            .setup
+            .domain
+            .map_or(0, |_| contacts.last().copied().unwrap_or(0));
+        if walls > 0 {
+            let w = format!(
+                "frame {frame}: the domain walls acted on {walls} particle(s): the motion \
+                 differs from one without walls; enlarge `domain` or leave it out (the grid \
+                 then follows the particles)"
+            );
+            progress.log(&format!("warning: {w}"));
+            warnings.push(w);
+        }
+        progress.message(&format!(
+            "frame {frame}: {n_sub} substeps ({reason}), held {}",
+            rep.held
+        ));
+        progress.inc(1);
+        let frame_stats = FrameStats {
+            frame,
+            substeps: n_sub,
+            dt_s: dt,
+            substeps_reason: reason.to_string(),
+            binding_limit: stable.limit().to_string(),
+            stable_dt_s: stable.dt(),
+            max_fixed_dt_s: stable.max_fixed_dt(),
+            cfl_number: stable.cfl_number(dt),
+            max_speed_m_s: max_speed,
+            speed_bound_m_s: speed,
+            unstable,
+            held: rep.held,
+            max_held: rep.max_held,
+            grid: stepper.grid_span().map(|g| spec::BoxSpec {
+                min: g.lo.to_array(),
+                max: g.hi.to_array(),
+            }),
+            contacts: if body.setup.domain.is_some() {
+                contacts
+            } else {
+                contacts[..contacts.len().saturating_sub(1)].to_vec()
+            },
+        };
+        let go_on = sink(frame, state, Some(&frame_stats))?;
+        stats.push(frame_stats);
+        if !go_on {
             return Ok(None);
         }
-        let mut stats = Vec::new();
-        let mut warnings = Vec::new();
-        let setup_s = self.started.elapsed().as_secs_f64();
-        let mut substeps_s = 0.0;
-        self.progress
-            .start("simulate", u64::from(self.frames.saturating_sub(1)));
-        for frame in 1..self.frames {
-            let FrameStep {
-                substeps: n_sub,
-                reason,
-                stable,
-                max_speed,
-                speed,
-                unstable,
-            } = self.substeps(sim, state, frame)?;
-            let dt = spec.frame_dt / n_sub as f64;
-            if unstable {
-                let w = format!(
-                    "frame {frame}: `substeps` = {n_sub} gives dt = {dt:.3e} s (CFL number \
-                     {:.2}), above the largest step a fixed count may take, {:.3e} s \
-                     (allow_unstable)",
-                    stable.cfl_number(dt),
-                    stable.max_fixed_dt()
-                );
-                self.progress.log(&format!("warning: {w}"));
-                warnings.push(w);
-            }
-            let t0 = f64::from(frame - 1) * spec.frame_dt;
-            let stepping = Instant::now();
-            let rep = stepper.advance(t0, dt, n_sub);
-            substeps_s += stepping.elapsed().as_secs_f64();
-            let rep = rep.map_err(|source| {
-                if let MpmError::Diverged { speed, cells, .. } = source {
-                    return SimulateError::Diverged {
-                        frame,
-                        speed,
-                        cells,
-                    };
-                }
-                let why = if unstable {
-                    " (the substep is above the stability limit: allow_unstable)"
-                } else {
-                    ""
-                };
-                SimulateError::Simulation {
-                    context: format!(
-                        "frame {frame} ({n_sub} substeps of {dt:.3e} s from t = {t0:.4} s){why}"
-                    ),
-                    source,
-                }
-            })?;
-            // The next frame's substeps need the velocities; the splats need `F` too.
-            let read = match self.gaussians {
-                Some(_) => stepper.read(state),
-                None => stepper.read_motion(state),
-            };
-            read.map_err(|source| SimulateError::Simulation {
-                context: format!("frame {frame}: reading the state"),
-                source,
-            })?;
-            let splats = self.gaussians.map(|g| {
-                let f = splat_deformation(spec.material.family, &state.f[..n_out]);
-                deform(g, &state.x[..n_out], &f)
-            });
-            let out = FrameOut::new(frame, &state.x[..n_out], &state.v[..n_out], splats);
-            if tx.send(ToWriter::Frame(Box::new(out))).is_err() {
-                return Ok(None);
-            }
-            // Fillers count too: a boundary acts on the whole object.
-            let contacts = stepper.take_contacts();
-            let walls = self
-                .body
-                .setup
-                .domain
-                .map_or(0, |_| contacts.last().copied().unwrap_or(0));
-            if walls > 0 {
-                let w = format!(
-                    "frame {frame}: the domain walls acted on {walls} particle(s): the motion \
-                     differs from one without walls; enlarge `domain` or leave it out (the grid \
-                     then follows the particles)"
-                );
-                self.progress.log(&format!("warning: {w}"));
-                warnings.push(w);
-            }
-            self.progress.message(&format!(
-                "frame {frame}: {n_sub} substeps ({reason}), held {}",
-                rep.held
-            ));
-            self.progress.inc(1);
-            stats.push(FrameStats {
-                frame,
-                substeps: n_sub,
-                dt_s: dt,
-                substeps_reason: reason.to_string(),
-                binding_limit: stable.limit().to_string(),
-                stable_dt_s: stable.dt(),
-                max_fixed_dt_s: stable.max_fixed_dt(),
-                cfl_number: stable.cfl_number(dt),
-                max_speed_m_s: max_speed,
-                speed_bound_m_s: speed,
-                unstable,
-                held: rep.held,
-                max_held: rep.max_held,
-                grid: stepper.grid_span().map(|g| spec::BoxSpec {
-                    min: g.lo.to_array(),
-                    max: g.hi.to_array(),
-                }),
-                contacts: if self.body.setup.domain.is_some() {
-                    contacts
-                } else {
-                    contacts[..contacts.len().saturating_sub(1)].to_vec()
-                },
-            });
-        }
-        Ok(Some(Done {
-            particles_out: n_out,
-            stats,
-            warnings,
-            setup_s,
-            substeps_s,
-        }))
     }
+    Ok(Some(Stepped {
+        stats,
+        warnings,
+        substeps_s,
+        first_substep,
+    }))
 }

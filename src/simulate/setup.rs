@@ -390,7 +390,7 @@ fn size_warnings(
 }
 
 /// How deep (m) `x` lies inside the solid side of boundary `b` (negative: on the free side).
-fn depth_inside(b: &BoundarySpec, x: DVec3) -> f64 {
+pub fn depth_inside(b: &BoundarySpec, x: DVec3) -> f64 {
     match b {
         BoundarySpec::Ground { y, .. } => y - x.y,
         BoundarySpec::HalfSpace { point, normal, .. } => {

@@ -287,7 +287,7 @@ impl TypedStage for Evaluate {
         .map_err(train_error)?;
         if p.renders {
             for (view, frames) in &eval.gif {
-                write_gif(
+                crate::io::video::write_gif(
                     &out_dir.join(format!("renders/v{view}.gif")),
                     frames,
                     p.gif_ms,
@@ -648,34 +648,4 @@ impl FrameLoss for Scorer<'_> {
         }
         Ok(0.0)
     }
-}
-
-/// An animated GIF of `frames` (all the same size), `ms` per frame, looping.
-fn write_gif(path: &Path, frames: &[Rgb8], ms: u32) -> Result<(), image::ImageError> {
-    use ::image::codecs::gif::{GifEncoder, Repeat};
-    use ::image::{Delay, Frame, RgbaImage};
-    let io = |e: &dyn std::fmt::Display| image::ImageError::Encode {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    };
-    let file = std::fs::File::create(path).map_err(|e| io(&e))?;
-    let mut enc = GifEncoder::new_with_speed(std::io::BufWriter::new(file), 10);
-    enc.set_repeat(Repeat::Infinite).map_err(|e| io(&e))?;
-    for f in frames {
-        let rgba: Vec<u8> = f
-            .data
-            .chunks_exact(3)
-            .flat_map(|c| [c[0], c[1], c[2], 255])
-            .collect();
-        let img = RgbaImage::from_raw(f.width, f.height, rgba)
-            .ok_or_else(|| io(&"frames of different sizes"))?;
-        enc.encode_frame(Frame::from_parts(
-            img,
-            0,
-            0,
-            Delay::from_numer_denom_ms(ms, 1),
-        ))
-        .map_err(|e| io(&e))?;
-    }
-    Ok(())
 }

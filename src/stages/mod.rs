@@ -1,6 +1,7 @@
 //! The stages: one file per stage kind, each thin (read inputs, call kernels, write outputs).
 //! They register here; the runner knows them only through [`Registry`].
 
+pub mod edit;
 pub mod evaluate;
 pub mod ingest;
 pub mod init;
@@ -20,4 +21,5 @@ pub fn builtin() -> Registry {
         .with(velocity::Velocity)
         .with(material::MaterialStage)
         .with(evaluate::Evaluate)
+        .with(edit::Edit)
 }

@@ -2,6 +2,7 @@
 
 mod deformed_render;
 mod deps;
+mod edit;
 mod formats;
 mod ingest;
 mod init;

@@ -264,13 +264,19 @@ fn shipped_pipeline_files_parse_with_the_builtin_stages() {
                 &Overrides::default(),
             )
             .unwrap_or_else(|e| panic!("{e}"));
-            let kinds: Vec<&str> = p.stages.iter().map(|s| s.name.as_str()).collect();
+            let kinds: Vec<&str> = p.stages.iter().map(|s| s.kind.as_str()).collect();
             assert_eq!(
-                kinds,
+                kinds[..6],
                 [
                     "ingest", "init", "warmup", "velocity", "material", "evaluate"
                 ],
                 "{}: from the images to a scored, learned scene",
+                path.display()
+            );
+            // Then edits of the learned scene, if any.
+            assert!(
+                kinds[6..].iter().all(|k| *k == "edit"),
+                "{}: {kinds:?}",
                 path.display()
             );
             seen += 1;
