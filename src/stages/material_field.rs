@@ -1,7 +1,8 @@
 //! The field phase of `material: {model: field}`: starting from the global fit (every particle
 //! at the global E and ν), a triplane + MLP field ([`MaterialField`]) gives each particle its
 //! own `E` and `ν`, learned by Adam after every frame's truncated backward pass (the seed
-//! method's online descent), with the planes' total variation (eq. 8) added to the gradient.
+//! method's online descent; `truncate: none`: once an epoch along the whole rollout's
+//! gradient), with the planes' total variation (eq. 8) added to the gradient.
 //! The family's other learned parameters (a yield stress, ...) stay global and keep stepping
 //! with the stage's Adam.
 
@@ -14,7 +15,7 @@ use crate::physics::material_field::{MaterialField, percentiles};
 use crate::physics::object::Object;
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::rollout::{
-    FrameGradient, Moduli, NextMaterial, Rollout, RolloutError, is_fluid,
+    FrameGradient, Moduli, NextMaterial, Rollout, RolloutError, Truncate, Wants, is_fluid,
 };
 use crate::physics::views::ViewsLoss;
 use crate::pipeline::spec::MaterialFamily;
@@ -86,7 +87,11 @@ pub(crate) fn fit(
     let mut field = MaterialField::starting_at(&p.field, points, outputs.clone(), start)
         .map_err(|e| invalid(format!("stages.{}.field: {e}", ctx.name)))?;
     let epochs = p.field.epochs.unwrap_or(p.epochs);
-    let steps = (epochs * u32::from(last)).max(2);
+    let steps = match p.truncate {
+        Truncate::Frame => epochs * u32::from(last),
+        Truncate::None => epochs,
+    }
+    .max(2);
     let schedule = LrSchedule::exponential(p.field.lr, p.field.lr_final, steps);
     let mut field_adam =
         FieldAdam::new(&field.field, schedule, schedule, FieldAdamConfig::default())
@@ -167,7 +172,7 @@ pub(crate) fn fit(
                     moduli: Some(cur_moduli.clone()),
                 }))
             };
-            Rollout {
+            let rollout = Rollout {
                 object,
                 material: &values,
                 v0,
@@ -175,8 +180,26 @@ pub(crate) fn fit(
                 precision,
                 interrupt: Some(interrupt),
                 moduli: Some(&moduli),
+            };
+            match p.truncate {
+                Truncate::Frame => rollout.run_online(loss, &mut on_frame),
+                // One step an epoch along the whole rollout's gradient.
+                Truncate::None => {
+                    rollout
+                        .run(loss, Wants::Material(Truncate::None))
+                        .and_then(|out| {
+                            let values = out.material.clone().unwrap_or_default();
+                            on_frame(
+                                last,
+                                FrameGradient {
+                                    values: &values,
+                                    moduli: out.moduli.as_ref(),
+                                },
+                            )?;
+                            Ok(out)
+                        })
+                }
             }
-            .run_online(loss, &mut on_frame)
         };
         let out = out.map_err(|e| match e {
             RolloutError::Interrupted => StageError::Interrupted,
