@@ -193,6 +193,29 @@ fn velocity(object: &Object, shift: DVec3) -> Vec<DVec3> {
         .collect()
 }
 
+/// One f64 rollout of the tiny scene under `values` (and per-particle `moduli`), scored by
+/// [`LinearLoss`].
+fn run_rollout(
+    object: &Object,
+    values: &MaterialValues,
+    v0: &[DVec3],
+    frames: u16,
+    moduli: Option<&Moduli>,
+    wants: Wants,
+) -> Result<pipe::physics::rollout::Outcome, RolloutError> {
+    let mut l = LinearLoss::new(object);
+    Rollout {
+        object,
+        material: values,
+        v0,
+        frames,
+        precision: Precision::F64,
+        interrupt: None,
+        moduli,
+    }
+    .run(&mut l, wants)
+}
+
 fn rollout_loss(object: &Object, values: &MaterialValues, v0: &[DVec3], frames: u16) -> f64 {
     let mut l = LinearLoss::new(object);
     Rollout {
@@ -319,18 +342,7 @@ fn per_particle_moduli_gradients_match_finite_differences() {
         nu: (0..n).map(|i| 0.2 + 0.2 * hash(i, 3)).collect(),
     };
     let run = |moduli: &Moduli, wants| {
-        let mut l = LinearLoss::new(&object);
-        Rollout {
-            object: &object,
-            material: &values,
-            v0: &v0,
-            frames: 2,
-            precision: Precision::F64,
-            interrupt: None,
-            moduli: Some(moduli),
-        }
-        .run(&mut l, wants)
-        .unwrap()
+        run_rollout(&object, &values, &v0, 2, Some(moduli), wants).unwrap()
     };
     for wants in [
         Wants::Material(Truncate::None),
@@ -379,17 +391,14 @@ fn per_particle_moduli_gradients_match_finite_differences() {
         nu: vec![0.3; n],
     };
     let with = run(&uniform, Wants::Material(Truncate::None));
-    let mut l = LinearLoss::new(&object);
-    let global = Rollout {
-        object: &object,
-        material: &values,
-        v0: &v0,
-        frames: 2,
-        precision: Precision::F64,
-        interrupt: None,
-        moduli: None,
-    }
-    .run(&mut l, Wants::Material(Truncate::None))
+    let global = run_rollout(
+        &object,
+        &values,
+        &v0,
+        2,
+        None,
+        Wants::Material(Truncate::None),
+    )
     .unwrap();
     assert!((with.loss() - global.loss()).abs() <= 1e-12 * global.loss().abs());
     let (a, b) = (with.material.unwrap(), global.material.unwrap());
@@ -406,18 +415,7 @@ fn per_particle_moduli_gradients_match_finite_differences() {
         e: vec![5e3; n - 1],
         nu: vec![0.3; n - 1],
     };
-    let mut l = LinearLoss::new(&object);
-    let err = Rollout {
-        object: &object,
-        material: &values,
-        v0: &v0,
-        frames: 1,
-        precision: Precision::F64,
-        interrupt: None,
-        moduli: Some(&short),
-    }
-    .run(&mut l, Wants::Loss)
-    .unwrap_err();
+    let err = run_rollout(&object, &values, &v0, 1, Some(&short), Wants::Loss).unwrap_err();
     assert!(err.to_string().contains("expected"), "{err}");
 }
 
@@ -454,18 +452,7 @@ fn material_field_gradients_match_finite_differences_through_render_and_mpm() {
     field.field.set_flat(&w).unwrap();
     let loss_at = |f: &MaterialField, wants| {
         let moduli = f.moduli(&values).unwrap();
-        let mut l = LinearLoss::new(&object);
-        let out = Rollout {
-            object: &object,
-            material: &values,
-            v0: &v0,
-            frames: 2,
-            precision: Precision::F64,
-            interrupt: None,
-            moduli: Some(&moduli),
-        }
-        .run(&mut l, wants)
-        .unwrap();
+        let out = run_rollout(&object, &values, &v0, 2, Some(&moduli), wants).unwrap();
         (out, moduli)
     };
     let (out, moduli) = loss_at(&field, Wants::Material(Truncate::None));
