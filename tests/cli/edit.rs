@@ -16,15 +16,7 @@ use serde_json::Value;
 
 use crate::support::{BuiltinRun, fixture_scene};
 
-/// A deterministic number in `[0, 1)` from two indices.
-fn hash(i: usize, k: usize) -> f64 {
-    let h = (i as u64)
-        .wrapping_mul(0x9e37_79b9_7f4a_7c15)
-        .wrapping_add((k as u64).wrapping_mul(0xbf58_476d_1ce4_e5b9))
-        .rotate_left(17)
-        .wrapping_mul(0x94d0_49bb_1331_11eb);
-    (h >> 11) as f64 / (1u64 << 53) as f64
-}
+use crate::support::hash;
 
 /// Round Gaussians (σ = 0.6 a, opacity 0.5) on a jittered lattice of spacing `a` (m) inside
 /// the solid `inside`, within the box `lo..hi` (m); grey, SH degree 0.

@@ -20,14 +20,7 @@ use pipe::pipeline::spec::{MaterialFamily, SceneSpec};
 use pipe::scene::gaussians::Gaussians;
 use pipe_mpm::{Precision, State, StateGrad};
 
-fn hash(i: usize, k: usize) -> f64 {
-    let h = (i as u64)
-        .wrapping_mul(0x9e37_79b9_7f4a_7c15)
-        .wrapping_add((k as u64).wrapping_mul(0xbf58_476d_1ce4_e5b9))
-        .rotate_left(17)
-        .wrapping_mul(0x94d0_49bb_1331_11eb);
-    (h >> 11) as f64 / (1u64 << 53) as f64
-}
+use crate::support::hash;
 
 /// A 4×4×4 block of Gaussians 2 cm apart, SH degree 1.
 fn block() -> Gaussians {

@@ -425,3 +425,13 @@ impl BuiltinRun {
         self.ws().cached_entry(&p, &reg, stage).unwrap()
     }
 }
+
+/// A deterministic number in `[0, 1)` from two indices (test weights and jitter).
+pub fn hash(i: usize, k: usize) -> f64 {
+    let h = (i as u64)
+        .wrapping_mul(0x9e37_79b9_7f4a_7c15)
+        .wrapping_add((k as u64).wrapping_mul(0xbf58_476d_1ce4_e5b9))
+        .rotate_left(17)
+        .wrapping_mul(0x94d0_49bb_1331_11eb);
+    (h >> 11) as f64 / (1u64 << 53) as f64
+}
