@@ -69,19 +69,25 @@ struct Scratch {
     mlp: MlpScratch,
 }
 
+/// The zero planes and zero MLP of the shape `config` gives.
+pub(crate) fn zero_parts(config: &FieldConfig) -> Result<(Triplane, Mlp)> {
+    let triplane = Triplane::zeros(config.resolution, config.channels, config.combine)?;
+    let mlp = Mlp::zeros(
+        config.features(),
+        config.hidden,
+        config.layers,
+        config.outputs,
+        config.activation,
+    )?;
+    Ok((triplane, mlp))
+}
+
 impl Field {
     /// A field with features uniform in `±plane_init` and He/LeCun-uniform MLP weights drawn
     /// from a PCG stream seeded by `seed` (same seed, same weights on every machine).
     pub fn new(config: &FieldConfig, domain: Domain, seed: u64) -> Result<Self> {
         config.validate()?;
-        let mut triplane = Triplane::zeros(config.resolution, config.channels, config.combine)?;
-        let mut mlp = Mlp::zeros(
-            config.features(),
-            config.hidden,
-            config.layers,
-            config.outputs,
-            config.activation,
-        )?;
+        let (mut triplane, mut mlp) = zero_parts(config)?;
         let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(seed);
         triplane.randomise(config.plane_init, &mut rng);
         mlp.randomise(&mut rng);

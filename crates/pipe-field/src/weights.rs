@@ -13,7 +13,7 @@ use crate::domain::Domain;
 use crate::error::{FieldError, Result, check_finite};
 use crate::field::Field;
 use crate::mlp::Mlp;
-use crate::triplane::{PLANE_NAMES, Triplane};
+use crate::triplane::PLANE_NAMES;
 
 /// One weight tensor, row-major.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -103,14 +103,7 @@ impl Field {
         let config = weights.config;
         config.validate()?;
         let domain = Domain::new(weights.domain_min, weights.domain_max)?;
-        let mut triplane = Triplane::zeros(config.resolution, config.channels, config.combine)?;
-        let mut mlp = Mlp::zeros(
-            config.features(),
-            config.hidden,
-            config.layers,
-            config.outputs,
-            config.activation,
-        )?;
+        let (mut triplane, mut mlp) = crate::field::zero_parts(&config)?;
         let expected = layout(&config);
         if weights.tensors.len() != expected.len() {
             return Err(FieldError::Weights {
