@@ -18,7 +18,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 use super::params::{MaterialValues, Param};
-use super::rollout::Moduli;
+use super::rollout::{Moduli, Truncate};
 use crate::scene::table::{self, Table, TableError, column};
 
 /// The field's box around the rest positions: this fraction of their largest extent on every
@@ -58,6 +58,27 @@ pub struct FieldSettings {
     /// Seed of the planes' and the MLP's initial weights.
     #[serde(default)]
     pub seed: u64,
+    /// How far back a frame's loss is differentiated for the field: `none` (default), one
+    /// Adam step an epoch along the whole rollout's gradient; `frame`, a step after every
+    /// frame's truncated gradient (the seed method's online descent). On a generated
+    /// two-material bar the per-frame steps hardly moved the field at a safe rate and were
+    /// noisy at a larger one; the whole gradient separated the halves.
+    #[serde(default = "field_truncate")]
+    pub truncate: Truncate,
+    /// The parameters that vary over the particles (`E` and/or `nu`, among the stage's
+    /// learned ones); the others learned stay global and keep stepping. Default `[E]`: on a
+    /// generated two-material bar a field of ν as well traded E against ν (ν drifted to 0.39,
+    /// the soft half's E rose 3×) where an E field with a global ν fitted the frames better.
+    #[serde(default = "vary")]
+    pub vary: Vec<Param>,
+}
+
+fn vary() -> Vec<Param> {
+    vec![Param::E]
+}
+
+fn field_truncate() -> Truncate {
+    Truncate::None
 }
 
 fn resolution() -> usize {
@@ -94,6 +115,8 @@ impl Default for FieldSettings {
             lr: field_lr(),
             lr_final: field_lr_final(),
             seed: 0,
+            truncate: field_truncate(),
+            vary: vary(),
         }
     }
 }
@@ -122,9 +145,16 @@ pub struct MaterialField {
     pub outputs: Vec<Param>,
     /// Rest positions of the particles it is evaluated at (m).
     pub points: Vec<[f64; 3]>,
+    /// `log10 E` of the global fit the field started from: the centre of E's bounded map.
+    pub log10_e_centre: f64,
 }
 
-/// The output the field holds for `p` at value `v`.
+/// How far (decades) a particle's E may go from the global fit's: `log10 E = c + R·tanh((y −
+/// c)/R)` for the field's output `y`, so a particle the frames hardly constrain cannot run
+/// off to a modulus no material has (unbounded, 5 % of a bar's particles fell to 25 Pa).
+pub const E_RANGE_DECADES: f64 = 2.0;
+
+/// The output the field holds for `p` at value `v` (E relative to the centre `c`).
 fn encode(p: Param, v: f64) -> f64 {
     match p {
         Param::E => v.log10(),
@@ -132,10 +162,10 @@ fn encode(p: Param, v: f64) -> f64 {
     }
 }
 
-/// The value of `p` from its output `y`.
-fn decode(p: Param, y: f64) -> f64 {
+/// The value of `p` from its output `y` (E through the bounded map about `c`).
+fn decode(p: Param, y: f64, c: f64) -> f64 {
     match p {
-        Param::E => 10f64.powf(y),
+        Param::E => 10f64.powf(c + E_RANGE_DECADES * ((y - c) / E_RANGE_DECADES).tanh()),
         _ => p.decode(y),
     }
 }
@@ -152,22 +182,13 @@ impl MaterialField {
         outputs: Vec<Param>,
         start: &MaterialValues,
     ) -> Result<Self, FieldError> {
-        let (lo, hi) = points.iter().fold(
-            ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]),
-            |(mut lo, mut hi), p| {
-                for a in 0..3 {
-                    lo[a] = lo[a].min(p[a]);
-                    hi[a] = hi[a].max(p[a]);
-                }
-                (lo, hi)
-            },
-        );
-        let extent = (0..3).map(|a| hi[a] - lo[a]).fold(0.0f64, f64::max);
+        let extent = largest_extent(&points);
         let domain = pipe_field::Domain::around(&points, MARGIN * extent)?;
         let value: Vec<f64> = outputs
             .iter()
             .map(|p| encode(*p, start.get(*p).unwrap_or(f64::NAN)))
             .collect();
+        let log10_e_centre = start.get(Param::E).map_or(f64::NAN, f64::log10);
         let field = Field::with_constant_output(
             &settings.config(outputs.len()),
             domain,
@@ -178,6 +199,7 @@ impl MaterialField {
             field,
             outputs,
             points,
+            log10_e_centre,
         })
     }
 
@@ -196,7 +218,7 @@ impl MaterialField {
         for (j, p) in self.outputs.iter().enumerate() {
             let target = if *p == Param::E { &mut m.e } else { &mut m.nu };
             for (i, t) in target.iter_mut().enumerate() {
-                *t = decode(*p, y[i * k + j]);
+                *t = decode(*p, y[i * k + j], self.log10_e_centre);
             }
         }
         Ok(m)
@@ -209,13 +231,31 @@ impl MaterialField {
         for (j, p) in self.outputs.iter().enumerate() {
             for i in 0..self.points.len() {
                 d[i * k + j] = match p {
-                    Param::E => grad.e[i] * moduli.e[i] * std::f64::consts::LN_10,
+                    Param::E => {
+                        let s = (moduli.e[i].log10() - self.log10_e_centre) / E_RANGE_DECADES;
+                        grad.e[i] * moduli.e[i] * std::f64::consts::LN_10 * (1.0 - s * s)
+                    }
                     _ => grad.nu[i] * p.dvalue_du(p.encode(moduli.nu[i])),
                 };
             }
         }
         d
     }
+}
+
+/// The largest side (m) of the box around `points` (0 for none).
+pub fn largest_extent(points: &[[f64; 3]]) -> f64 {
+    let (lo, hi) = points.iter().fold(
+        ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]),
+        |(mut lo, mut hi), p| {
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a]);
+            }
+            (lo, hi)
+        },
+    );
+    (0..3).map(|a| hi[a] - lo[a]).fold(0.0f64, f64::max)
 }
 
 /// The 5th, 50th and 95th percentiles of `v` (NaN-free input; nearest rank).
@@ -247,16 +287,22 @@ pub fn colour_of(log10_e: f64, lo: f64, hi: f64) -> [f64; 3] {
 }
 
 /// The field's weights as a long table (`field.material.arrow`): one row per number, with its
-/// tensor's name and shape; the configuration and box in the schema metadata.
+/// tensor's name and shape; the configuration, the box and what the outputs are in the schema
+/// metadata.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FieldTable {
     /// The weights.
     pub weights: FieldWeights,
+    /// What the outputs hold, in output order: `E` (as `log10 E`) and/or `nu` (encoded) for a
+    /// material field, `vx vy vz` (m/s) for a velocity field.
+    pub outputs: Vec<String>,
+    /// A material field's centre of E's bounded map ([`E_RANGE_DECADES`]).
+    pub log10_e_centre: Option<f64>,
 }
 
 impl Table for FieldTable {
     const NAME: &'static str = "field_weights";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
 
     fn schema() -> Schema {
         Schema::new(vec![
@@ -288,6 +334,8 @@ impl Table for FieldTable {
             "config": self.weights.config,
             "domain_min": self.weights.domain_min,
             "domain_max": self.weights.domain_max,
+            "outputs": self.outputs,
+            "log10_e_centre": self.log10_e_centre,
         });
         let schema = Self::schema();
         let mut md = schema.metadata().clone();
@@ -317,8 +365,17 @@ impl Table for FieldTable {
             .and_then(|s| {
                 serde_json::from_str(s).map_err(|e| bad(format!("`field` metadata: {e}")))
             })?;
-        let config = serde_json::from_value(meta["config"].clone())
+        let config: pipe_field::FieldConfig = serde_json::from_value(meta["config"].clone())
             .map_err(|e| bad(format!("`field` metadata `config`: {e}")))?;
+        let outputs: Vec<String> = serde_json::from_value(meta["outputs"].clone())
+            .map_err(|e| bad(format!("`field` metadata `outputs`: {e}")))?;
+        if outputs.len() != config.outputs {
+            return Err(bad(format!(
+                "`field` metadata `outputs` names {} outputs ({outputs:?}) for a field of {}",
+                outputs.len(),
+                config.outputs
+            )));
+        }
         let corner = |k: &str| -> Result<[f64; 3], TableError> {
             serde_json::from_value(meta[k].clone())
                 .map_err(|e| bad(format!("`field` metadata `{k}`: {e}")))
@@ -353,16 +410,74 @@ impl Table for FieldTable {
                 domain_max: corner("domain_max")?,
                 tensors,
             },
+            outputs,
+            log10_e_centre: meta["log10_e_centre"].as_f64(),
         })
     }
 }
 
 /// Writes the field's weights to `path` (atomically, as every table).
-pub fn write_weights(path: &Path, field: &Field) -> Result<(), TableError> {
+pub fn write_weights(path: &Path, field: &MaterialField) -> Result<(), TableError> {
     table::write(
         path,
         &FieldTable {
-            weights: field.weights(),
+            weights: field.field.weights(),
+            outputs: field.outputs.iter().map(|q| q.name().to_string()).collect(),
+            log10_e_centre: Some(field.log10_e_centre).filter(|c| c.is_finite()),
         },
     )
+}
+
+/// A field written with [`FieldTable`], and its outputs' names.
+///
+/// # Errors
+/// An unreadable or inconsistent table, named with the path.
+pub fn read_field(path: &Path) -> Result<(Field, FieldTable), String> {
+    let t: FieldTable = table::read(path).map_err(|e| e.to_string())?;
+    let field = Field::from_weights(&t.weights).map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok((field, t))
+}
+
+/// Per-particle `E` and `ν` at rest positions `points` (m) from the field written at `path`
+/// (`field.material.arrow`), `values` for what it does not output. The field is a function
+/// of space, so any particle set of the same object (another stage's, another grid) can ask
+/// it; points outside its box take the value at the box's nearest face.
+///
+/// # Errors
+/// An unreadable or inconsistent table, or a non-finite output, named with the path.
+pub fn read_moduli(
+    path: &Path,
+    points: Vec<[f64; 3]>,
+    values: &MaterialValues,
+) -> Result<Moduli, String> {
+    let (field, table) = read_field(path)?;
+    let outputs = table
+        .outputs
+        .iter()
+        .map(|n| match Param::from_name(n) {
+            Some(q @ (Param::E | Param::Nu)) => Ok(q),
+            _ => Err(format!(
+                "{}: output `{n}` is not a material field's (E, nu)",
+                path.display()
+            )),
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let log10_e_centre = match (outputs.contains(&Param::E), table.log10_e_centre) {
+        (true, Some(c)) => c,
+        (true, None) => {
+            return Err(format!(
+                "{}: a field of E without `log10_e_centre` in its metadata",
+                path.display()
+            ));
+        }
+        (false, _) => f64::NAN,
+    };
+    MaterialField {
+        field,
+        outputs,
+        points,
+        log10_e_centre,
+    }
+    .moduli(values)
+    .map_err(|e| format!("{}: {e}", path.display()))
 }

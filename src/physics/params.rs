@@ -86,6 +86,11 @@ impl Param {
         }
     }
 
+    /// The parameter named `name` ([`Param::name`]).
+    pub fn from_name(name: &str) -> Option<Param> {
+        Param::ALL.into_iter().find(|p| p.name() == name)
+    }
+
     /// Unit of the value, for reports.
     pub fn unit(self) -> &'static str {
         match self {

@@ -48,7 +48,7 @@ impl<'a> ViewsLoss<'a> {
     pub fn new(
         object: &'a Object,
         fluid: bool,
-        targets: &'a [Target],
+        targets: impl IntoIterator<Item = &'a Target>,
         weights: LossWeights,
         solid: [f32; 3],
     ) -> Self {

@@ -21,18 +21,20 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
 use crate::io::image::{self, Rgb8};
-use crate::physics::fit::{FitError, Inputs, PrecisionParam, RigidVelocity};
+use crate::physics::fit::{FitError, Inputs, PrecisionParam};
+use crate::physics::material_field::read_moduli;
+use crate::physics::material_truth::MaterialTruthErrors;
 use crate::physics::object::Object;
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::pose::Pose;
-use crate::physics::rollout::{FrameLoss, Rollout, RolloutError, Wants, is_fluid};
+use crate::physics::rollout::{FrameLoss, Moduli, Rollout, RolloutError, Wants, is_fluid};
 use crate::pipeline::spec::{Preset, SceneSpec};
 use crate::pipeline::stage::{
     InputFile, MetricRow, ParamError, StageContext, StageError, TypedStage,
 };
 use crate::scene::frames::{FrameRow, Role};
 use crate::scene::targets::{self, Target, composite};
-use crate::stages::material::MaterialResult;
+use crate::stages::material::{MaterialModel, MaterialResult};
 use crate::stages::velocity::VelocityResult;
 
 /// Which views are rendered to files (all views are scored).
@@ -119,6 +121,11 @@ pub struct Evaluation {
     /// last frame.
     pub chamfer_per_frame_m: Vec<f64>,
     pub chamfer_last_frame_m: Option<f64>,
+    /// The learned E and ν particle by particle (a field's, or the global values everywhere)
+    /// against the scene's per-particle truth (`gt/material_particles.ply`), per part when it
+    /// has few distinct values.
+    #[serde(default)]
+    pub material_truth: Option<MaterialTruthErrors>,
     /// Wall time (s) of every stage that made these results, and of this one.
     pub stage_wall_s: BTreeMap<String, f64>,
     /// Frames evaluated (`0..=frames`), test views.
@@ -133,7 +140,7 @@ pub struct Evaluate;
 impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
-    const VERSION: u32 = 2;
+    const VERSION: u32 = 3;
     const DESCRIPTION: &'static str = "Re-simulate the learned scene and score it in every view and frame (PSNR, SSIM, mask IoU; parameter and Chamfer errors against ground truth)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "init", "warmup", "velocity", "material"];
 
@@ -173,6 +180,13 @@ impl TypedStage for Evaluate {
             out.push(InputFile {
                 logical_name: "gt/params.json".into(),
                 path: params,
+            });
+        }
+        let truth = scene.path.join(crate::physics::material_truth::TRUTH_FILE);
+        if truth.is_file() {
+            out.push(InputFile {
+                logical_name: crate::physics::material_truth::TRUTH_FILE.into(),
+                path: truth,
             });
         }
         let dir = scene.path.join("gt/particles");
@@ -219,12 +233,40 @@ impl TypedStage for Evaluate {
         }
         let cells = object_cells(ctx)?;
         let object = inputs.object(ctx, &values, cells)?;
-        let rigid = RigidVelocity {
-            linear: velocity.linear_velocity,
-            angular: velocity.angular_velocity,
-            centre: object.centre_of_mass().to_array(),
+        let v0 = velocity.velocities(&object, &ctx.upstream("velocity")?.dir)?;
+        // A field is a function of the rest position: asked at this object's particles.
+        let rest: Vec<[f64; 3]> = object.body.state.x.iter().map(|x| x.to_array()).collect();
+        let moduli = match learned.model {
+            MaterialModel::Field => Some(
+                read_moduli(
+                    &ctx.upstream("material")?.dir.join("field.material.arrow"),
+                    rest,
+                    &values,
+                )
+                .map_err(|e| StageError::failed(FitError::Invalid(e)))?,
+            ),
+            MaterialModel::Global | MaterialModel::Auto => None,
         };
-        let v0 = rigid.field(&object);
+        let truth_errors = match (&moduli, is_fluid(family)) {
+            (_, true) => None,
+            (Some(m), false) => Some(m.clone()),
+            (None, false) => Some(Moduli {
+                e: vec![values.get(Param::E).unwrap_or(f64::NAN); object.particles()],
+                nu: vec![values.get(Param::Nu).unwrap_or(f64::NAN); object.particles()],
+            }),
+        }
+        .map(|m| {
+            crate::physics::material_truth::errors(
+                &ctx.scene
+                    .path
+                    .join(crate::physics::material_truth::TRUTH_FILE),
+                &object.body.state.x,
+                &m,
+            )
+        })
+        .transpose()
+        .map_err(|e| StageError::failed(FitError::Invalid(e)))?
+        .flatten();
         let last = inputs.last_frame();
         let all_rows: Vec<&FrameRow> = inputs.frames.rows.iter().collect();
         let targets = targets::load(&inputs.ingest_dir, &all_rows).map_err(StageError::failed)?;
@@ -281,7 +323,7 @@ impl TypedStage for Evaluate {
             frames: last,
             precision: p.precision.mpm(),
             interrupt: Some(ctx.interrupt_flag()),
-            moduli: None,
+            moduli: moduli.as_ref(),
         }
         .run(&mut eval, Wants::Loss)
         .map_err(train_error)?;
@@ -395,6 +437,7 @@ impl TypedStage for Evaluate {
             errors,
             chamfer_last_frame_m: chamfer.last().copied().filter(|c| c.is_finite()),
             chamfer_per_frame_m: chamfer,
+            material_truth: truth_errors,
             stage_wall_s,
             frames: last,
             test_views: ctx.scene.test_views.clone(),
@@ -423,6 +466,27 @@ impl TypedStage for Evaluate {
                     frame: None,
                     metric: format!("error_{name}"),
                     value: *value,
+                });
+            }
+        }
+        if let Some(t) = &result.material_truth {
+            let mut rows = vec![(
+                "error_field_log10_E_abs_median".to_string(),
+                t.log10_youngs_modulus_abs_median,
+            )];
+            for (k, part) in t.parts.iter().enumerate() {
+                rows.push((
+                    format!("error_part{k}_log10_E"),
+                    part.log10_youngs_modulus_error,
+                ));
+            }
+            for (metric, value) in rows {
+                ctx.metric(MetricRow {
+                    epoch: None,
+                    view: None,
+                    frame: None,
+                    metric,
+                    value,
                 });
             }
         }
@@ -505,6 +569,21 @@ fn summary(e: &Evaluation) -> String {
     if let Some(err) = &e.errors {
         let parts: Vec<String> = err.iter().map(|(k, v)| format!("{k} {v:.3}")).collect();
         s.push_str(&format!("; errors: {}", parts.join(", ")));
+    }
+    if let Some(t) = &e.material_truth {
+        s.push_str(&format!(
+            "; per particle: |log10 E error| median {:.3}",
+            t.log10_youngs_modulus_abs_median
+        ));
+        for p in &t.parts {
+            s.push_str(&format!(
+                "; part E {:.3e} Pa ({} particles): median {:.3e} Pa (log10 error {:.3})",
+                p.youngs_modulus_truth,
+                p.particles,
+                10f64.powf(p.log10_youngs_modulus_median),
+                p.log10_youngs_modulus_error
+            ));
+        }
     }
     s
 }

@@ -5,8 +5,10 @@
 //! Only the parameters of the scene's declared family are learned (`learn:` narrows or widens
 //! the set among them), each in the optimiser's coordinates of [`crate::physics::params`] (log10
 //! of moduli, stresses and viscosities; ν and the friction angle through bounded maps). The
-//! model is one global value per parameter (`model: global`; a per-particle field is another
-//! model, to come). Each epoch simulates the sequence from frame 0; with `truncate: frame` (the
+//! global model (`model: global`) is one value per parameter; `model: field` then refines it
+//! into a per-particle E (and optionally ν) field ([`crate::stages::material_field`]);
+//! `model: auto` (the default) keeps the field only when it wins on held-out views
+//! ([`crate::stages::material_select`]). Each epoch simulates the sequence from frame 0; with `truncate: frame` (the
 //! default, as the seed method) every frame's gradient stops at the previous frame's state and
 //! Adam steps after every frame (online truncated back-propagation through time); with
 //! `truncate: none` the gradient runs through the whole rollout and Adam steps once an epoch.
@@ -24,7 +26,7 @@ use serde_json::{Value, json};
 
 use crate::physics::adam::{Adam, AdamConfig, decayed};
 use crate::physics::descent::LineSearch;
-use crate::physics::fit::{FitError, Inputs, PrecisionParam, RigidVelocity};
+use crate::physics::fit::{FitError, Inputs, PrecisionParam};
 use crate::physics::material_field::{FieldSettings, colour_of, percentiles, write_weights};
 use crate::physics::object::sim_yaml;
 use crate::physics::params::{MaterialValues, Param};
@@ -34,14 +36,19 @@ use crate::physics::rollout::{
 use crate::physics::views::{LossWeights, ViewsLoss};
 use crate::pipeline::spec::{Preset, SceneSpec};
 use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
+use crate::stages::material_select::{AutoSettings, ModelSelection, field_wins, held_out_views};
 use crate::stages::velocity::{VelocityResult, check_family_guess, check_guess};
 
 /// How the material varies over the object.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum MaterialModel {
-    /// One value per parameter: a homogeneous object needs no more.
+    /// The global model, then a field from it kept only when it lowers the loss on training
+    /// views it was not fitted on by more than `auto.margin`
+    /// ([`crate::stages::material_select`]); `material.json`'s `model` is the one kept.
     #[default]
+    Auto,
+    /// One value per parameter: a homogeneous object needs no more.
     Global,
     /// The global fit first, then per-particle E and ν from a triplane + MLP field over the
     /// rest positions, started at the global values (seed paper §3.2, eq. 8; the `field:`
@@ -114,9 +121,12 @@ pub struct MaterialParams {
     /// Gradients longer than this (optimiser coordinates) are scaled down to it.
     #[serde(default = "grad_clip")]
     pub grad_clip: f64,
-    /// The field of `model: field` (ignored by `model: global`).
+    /// The field of `model: field` and `model: auto` (ignored by `model: global`).
     #[serde(default)]
     pub field: FieldSettings,
+    /// How `model: auto` decides.
+    #[serde(default)]
+    pub auto: AutoSettings,
 }
 
 fn epochs() -> u32 {
@@ -159,7 +169,7 @@ struct Checkpoint {
 pub struct MaterialResult {
     /// The family.
     pub family: String,
-    /// `global`.
+    /// The model of the result: `global` or `field` (`model: auto` says which it kept).
     pub model: MaterialModel,
     /// Young's modulus E (Pa), Poisson's ratio ν, yield stress (Pa), viscosity (Pa s: the
     /// plastic flow's η, or a fluid's μ), bulk modulus κ (Pa), friction angle (degrees);
@@ -199,6 +209,9 @@ pub struct MaterialResult {
     /// medians), the colour map of `field_E.ply`, the weights' table.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub field: Option<FieldSummary>,
+    /// `model: auto`: the two models' held-out losses and which was kept.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub selection: Option<ModelSelection>,
 }
 
 /// The learned field in `material.json`.
@@ -225,7 +238,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 5;
+    const VERSION: u32 = 6;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 
@@ -235,9 +248,11 @@ impl TypedStage for MaterialStage {
 
     fn preset_params(&self, preset: Preset) -> Value {
         match preset {
-            Preset::Draft => json!({"epochs": 5, "cells": 16}),
-            Preset::Standard => json!({"epochs": 10, "cells": 24}),
-            Preset::Paper => json!({"epochs": 200, "cells": 48, "precision": "f64"}),
+            Preset::Draft => json!({"epochs": 5, "cells": 16, "field": {"epochs": 20}}),
+            Preset::Standard => json!({"epochs": 10, "cells": 24, "field": {"epochs": 40}}),
+            Preset::Paper => json!({
+                "epochs": 200, "cells": 48, "precision": "f64", "field": {"epochs": 200}
+            }),
         }
     }
 
@@ -283,7 +298,13 @@ impl TypedStage for MaterialStage {
         if p.frames == Some(0) {
             return bad("frames", "must be at least 1".into());
         }
-        if p.model == MaterialModel::Field {
+        if !(p.auto.margin.is_finite() && (0.0..1.0).contains(&p.auto.margin)) {
+            return bad(
+                "auto.margin",
+                format!("must be in [0, 1), found {}", p.auto.margin),
+            );
+        }
+        if p.model != MaterialModel::Global {
             if let Err(e) = p.field.config(2).validate() {
                 return bad("field", e.to_string());
             }
@@ -359,16 +380,11 @@ impl TypedStage for MaterialStage {
             }
         };
         if p.model == MaterialModel::Field {
-            // Before any rollout: a field that cannot apply is refused at once.
-            crate::stages::material_field::outputs(family, &learned, ctx.name)?;
+            // Before any rollout: a field asked for that cannot apply is refused at once.
+            crate::stages::material_field::outputs(family, &learned, &p.field.vary, ctx.name)?;
         }
         let object = inputs.object(ctx, &guess, p.cells)?;
-        let rigid = RigidVelocity {
-            linear: velocity.linear_velocity,
-            angular: velocity.angular_velocity,
-            centre: object.centre_of_mass().to_array(),
-        };
-        let v0 = rigid.field(&object);
+        let v0 = velocity.velocities(&object, &ctx.upstream("velocity")?.dir)?;
         let targets = inputs.train_targets(last)?;
         let weights = LossWeights {
             lambda: p.lambda,
@@ -598,17 +614,7 @@ impl TypedStage for MaterialStage {
         }
 
         let global = values_of(&u);
-        let fitted = match p.model {
-            MaterialModel::Global => None,
-            MaterialModel::Field => Some(crate::stages::material_field::fit(
-                p, ctx, &object, &v0, last, &mut loss, &global, &learned,
-            )?),
-        };
-        let result = fitted
-            .as_ref()
-            .map_or_else(|| global.clone(), |f| f.values.clone());
-        let moduli = fitted.as_ref().map(|f| &f.moduli);
-        // The losses at the guess and at the result, from clean rollouts.
+        // The losses of a material, from a clean rollout.
         let eval = |values: &MaterialValues,
                     moduli: Option<&crate::physics::rollout::Moduli>,
                     loss: &mut ViewsLoss<'_>| {
@@ -618,12 +624,104 @@ impl TypedStage for MaterialStage {
                 v0: &v0,
                 frames: last,
                 precision,
-                interrupt: Some(ctx.interrupt_flag()),
+                interrupt: Some(interrupt),
                 moduli,
             }
             .run(loss, Wants::Loss)
             .map_err(|e| fail(p.epochs, e))
         };
+        let field_applies =
+            crate::stages::material_field::outputs(family, &learned, &p.field.vary, ctx.name);
+        let (fitted, selection) = match p.model {
+            MaterialModel::Global => (None, None),
+            MaterialModel::Field => (
+                Some(crate::stages::material_field::fit(
+                    p, ctx, &object, &v0, last, &mut loss, &global, &learned,
+                )?),
+                None,
+            ),
+            MaterialModel::Auto => {
+                let mut train: Vec<u16> = targets.iter().map(|t| t.row.view).collect();
+                train.sort_unstable();
+                train.dedup();
+                let held =
+                    held_out_views(&train, p.auto.held_out_views.as_deref()).map_err(|m| {
+                        StageError::failed(FitError::Invalid(format!("stages.{}.{m}", ctx.name)))
+                    })?;
+                let fit_views: Vec<u16> = train
+                    .iter()
+                    .copied()
+                    .filter(|v| !held.contains(v))
+                    .collect();
+                let mut selection = ModelSelection {
+                    kept: "global".into(),
+                    reason: String::new(),
+                    held_out_views: held.clone(),
+                    fit_views: fit_views.clone(),
+                    loss_global_held_out: None,
+                    loss_field_held_out: None,
+                    margin: p.auto.margin,
+                };
+                match field_applies {
+                    Err(e) => {
+                        selection.reason = format!("no field applies: {e}");
+                        (None, Some(selection))
+                    }
+                    Ok(_) => {
+                        let mut held_loss = ViewsLoss::new(
+                            &object,
+                            is_fluid(family),
+                            targets.iter().filter(|t| held.contains(&t.row.view)),
+                            weights,
+                            inputs.background,
+                        );
+                        let mut fit_loss = ViewsLoss::new(
+                            &object,
+                            is_fluid(family),
+                            targets.iter().filter(|t| !held.contains(&t.row.view)),
+                            weights,
+                            inputs.background,
+                        );
+                        ctx.progress.log(&format!(
+                            "material auto: the field is fitted on views {fit_views:?} and compared with the global fit on views {held:?}"
+                        ));
+                        let f = crate::stages::material_field::fit(
+                            p,
+                            ctx,
+                            &object,
+                            &v0,
+                            last,
+                            &mut fit_loss,
+                            &global,
+                            &learned,
+                        )?;
+                        let lg = eval(&global, None, &mut held_loss)?.loss();
+                        let lf = eval(&f.values, Some(&f.moduli), &mut held_loss)?.loss();
+                        selection.loss_global_held_out = Some(lg);
+                        selection.loss_field_held_out = Some(lf);
+                        let wins = field_wins(lg, lf, p.auto.margin);
+                        selection.reason = format!(
+                            "held-out loss {lf:.5} with the field against {lg:.5} with the global model ({:+.2} %); the field {} by more than {:.1} %",
+                            100.0 * (lf / lg - 1.0),
+                            if wins { "wins" } else { "does not win" },
+                            100.0 * p.auto.margin
+                        );
+                        ctx.progress
+                            .log(&format!("material auto: {}", selection.reason));
+                        if wins {
+                            selection.kept = "field".into();
+                            (Some(f), Some(selection))
+                        } else {
+                            (None, Some(selection))
+                        }
+                    }
+                }
+            }
+        };
+        let result = fitted
+            .as_ref()
+            .map_or_else(|| global.clone(), |f| f.values.clone());
+        let moduli = fitted.as_ref().map(|f| &f.moduli);
         let loss_guess = eval(&guess, None, &mut loss)?.loss();
         let loss_global = match &fitted {
             Some(_) => Some(eval(&global, None, &mut loss)?.loss()),
@@ -657,7 +755,7 @@ impl TypedStage for MaterialStage {
                 } else {
                     [pe[1] - 0.5, pe[1] + 0.5]
                 };
-                write_weights(&ctx.out_dir.join("field.material.arrow"), &f.field.field)
+                write_weights(&ctx.out_dir.join("field.material.arrow"), &f.field)
                     .map_err(StageError::failed)?;
                 let mut g = object.gaussians.clone();
                 let per = 3 * (usize::from(g.sh_degree) + 1).pow(2);
@@ -693,7 +791,11 @@ impl TypedStage for MaterialStage {
         };
         let out = MaterialResult {
             family: crate::simulate::spec::family_name(family).into(),
-            model: p.model,
+            model: if fitted.is_some() {
+                MaterialModel::Field
+            } else {
+                MaterialModel::Global
+            },
             youngs_modulus: median(0, spec.youngs_modulus),
             poisson_ratio: median(1, spec.poisson_ratio),
             yield_stress: spec.yield_stress,
@@ -716,6 +818,7 @@ impl TypedStage for MaterialStage {
             grid_dx: object.body.setup.dx,
             substeps: final_out.substeps.clone(),
             field,
+            selection,
         };
         crate::io::write_json(&ctx.out_dir.join("material.json"), &out)
             .map_err(StageError::failed)?;

@@ -1,10 +1,11 @@
-//! The field phase of `material: {model: field}`: starting from the global fit (every particle
-//! at the global E and ν), a triplane + MLP field ([`MaterialField`]) gives each particle its
-//! own `E` and `ν`, learned by Adam after every frame's truncated backward pass (the seed
-//! method's online descent; `truncate: none`: once an epoch along the whole rollout's
-//! gradient), with the planes' total variation (eq. 8) added to the gradient.
-//! The family's other learned parameters (a yield stress, ...) stay global and keep stepping
-//! with the stage's Adam.
+//! The field phase of `material: {model: field}` (and `auto`): starting from the global fit
+//! (every particle at the global E and ν), a triplane + MLP field ([`MaterialField`]) gives
+//! each particle its own `E` (and `ν` with `field.vary`), learned by Adam with the planes'
+//! total variation (eq. 8) added to the gradient: by default (`field.truncate: none`) once an
+//! epoch along the whole rollout's gradient, the step's length searched on the loss
+//! ([`StepSearch`]); with `field.truncate: frame` after every frame's truncated backward pass
+//! (the seed method's online descent). The family's other learned parameters (ν, a yield
+//! stress, ...) stay global and keep stepping with their own Adam at the field's rates.
 
 use glam::DVec3;
 use pipe_field::{AdamConfig as FieldAdamConfig, FieldAdam, LrSchedule};
@@ -17,6 +18,7 @@ use crate::physics::params::{MaterialValues, Param};
 use crate::physics::rollout::{
     FrameGradient, Moduli, NextMaterial, Rollout, RolloutError, Truncate, Wants, is_fluid,
 };
+use crate::physics::step_search::{StepSearch, lerp};
 use crate::physics::views::ViewsLoss;
 use crate::pipeline::spec::MaterialFamily;
 use crate::pipeline::stage::{MetricRow, StageContext, StageError};
@@ -32,11 +34,12 @@ pub(crate) struct FieldFit {
     pub values: MaterialValues,
 }
 
-/// The parameters a field learns (E and/or ν, among `learned`), or why `model: field` does not
-/// apply to the family (stage `name`).
+/// The parameters a field learns (those of `vary` among `learned`, which must name E or ν), or
+/// why `model: field` does not apply to the family (stage `name`).
 pub(crate) fn outputs(
     family: MaterialFamily,
     learned: &[Param],
+    vary: &[Param],
     name: &str,
 ) -> Result<Vec<Param>, StageError> {
     let invalid = |m: String| StageError::failed(FitError::Invalid(m));
@@ -46,14 +49,24 @@ pub(crate) fn outputs(
             crate::simulate::spec::family_name(family)
         )));
     }
+    if let Some(q) = vary.iter().find(|q| !matches!(q, Param::E | Param::Nu)) {
+        return Err(invalid(format!(
+            "stages.{name}.field.vary: `{}` cannot vary per particle (E and nu can)",
+            q.name()
+        )));
+    }
     let outputs: Vec<Param> = learned
         .iter()
         .copied()
-        .filter(|q| matches!(q, Param::E | Param::Nu))
+        .filter(|q| vary.contains(q))
         .collect();
     if outputs.is_empty() {
         return Err(invalid(format!(
-            "stages.{name}.model: field learns E and/or ν per particle, but `learn` names neither"
+            "stages.{name}.model: field varies {} per particle, and `learn` names none of them",
+            vary.iter()
+                .map(|q| q.name())
+                .collect::<Vec<_>>()
+                .join(" and ")
         )));
     }
     Ok(outputs)
@@ -77,7 +90,7 @@ pub(crate) fn fit(
     learned: &[Param],
 ) -> Result<FieldFit, StageError> {
     let invalid = |m: String| StageError::failed(FitError::Invalid(m));
-    let outputs = outputs(start.family, learned, ctx.name)?;
+    let outputs = outputs(start.family, learned, &p.field.vary, ctx.name)?;
     let others: Vec<Param> = learned
         .iter()
         .copied()
@@ -87,7 +100,7 @@ pub(crate) fn fit(
     let mut field = MaterialField::starting_at(&p.field, points, outputs.clone(), start)
         .map_err(|e| invalid(format!("stages.{}.field: {e}", ctx.name)))?;
     let epochs = p.field.epochs.unwrap_or(p.epochs);
-    let steps = match p.truncate {
+    let steps = match p.field.truncate {
         Truncate::Frame => epochs * u32::from(last),
         Truncate::None => epochs,
     }
@@ -128,10 +141,12 @@ pub(crate) fn fit(
         p.field.hidden,
         field.field.param_count()
     ));
+    let mut search = StepSearch::default();
     ctx.progress.start("field epoch", u64::from(epochs));
     for epoch in 0..epochs {
         ctx.check_interrupted()?;
         let (mut cur_values, mut cur_moduli) = (values.clone(), moduli.clone());
+        let (before_w, before_u) = (field.field.to_flat(), u.clone());
         let out = {
             let mut on_frame = |frame: u16, g: FrameGradient<'_>| {
                 let fail = |message: String| RolloutError::Loss { frame, message };
@@ -160,7 +175,8 @@ pub(crate) fn fit(
                         return Err(fail(format!("non-finite gradient of `{}` ({v})", q.name())));
                     }
                     let progress = f64::from(adam.t) / f64::from(steps - 1);
-                    let lr = decayed(p.lr, p.lr_final, progress);
+                    // The field's rates: the stage's `lr` is the line search's first trial.
+                    let lr = decayed(p.field.lr, p.field.lr_final, progress);
                     adam.step(&cfg, &mut u, &gu, &vec![lr; gu.len()]);
                     cur_values = values_of(&u);
                 }
@@ -181,7 +197,7 @@ pub(crate) fn fit(
                 interrupt: Some(interrupt),
                 moduli: Some(&moduli),
             };
-            match p.truncate {
+            match p.field.truncate {
                 Truncate::Frame => rollout.run_online(loss, &mut on_frame),
                 // One step an epoch along the whole rollout's gradient.
                 Truncate::None => {
@@ -208,6 +224,50 @@ pub(crate) fn fit(
                 format!("{e}; try a smaller `field.lr` or a larger `field.tv_weight`"),
             ),
         })?;
+        let mut loss_after = None;
+        if p.field.truncate == Truncate::None {
+            // Adam's direction, its length searched on the loss ([`StepSearch`]).
+            let (step_w, step_u) = (field.field.to_flat(), u.clone());
+            let mut at =
+                |t: f64| -> Result<Option<(Vec<f64>, MaterialValues, Moduli)>, StageError> {
+                    field
+                        .field
+                        .set_flat(&lerp(&before_w, &step_w, t))
+                        .map_err(|e| training(epoch, e.to_string()))?;
+                    let trial_u = lerp(&before_u, &step_u, t);
+                    let trial_values = values_of(&trial_u);
+                    Ok(field
+                        .moduli(&trial_values)
+                        .ok()
+                        .map(|m| (trial_u, trial_values, m)))
+                };
+            let found = search.run(out.loss(), |t| {
+                let Some((_, trial_values, trial_moduli)) = at(t)? else {
+                    return Ok(None);
+                };
+                match (Rollout {
+                    object,
+                    material: &trial_values,
+                    v0,
+                    frames: last,
+                    precision,
+                    interrupt: Some(interrupt),
+                    moduli: Some(&trial_moduli),
+                })
+                .run(loss, Wants::Loss)
+                {
+                    Ok(o) => Ok(Some(o.loss())),
+                    Err(RolloutError::Interrupted) => Err(StageError::Interrupted),
+                    // A step that breaks the simulation is a step too long.
+                    Err(_) => Ok(None),
+                }
+            })?;
+            let t = found.map_or(0.0, |(t, _)| t);
+            if let Some((trial_u, trial_values, trial_moduli)) = at(t)? {
+                (u, cur_values, cur_moduli) = (trial_u, trial_values, trial_moduli);
+            }
+            loss_after = found.map(|(_, l)| l);
+        }
         values = cur_values;
         moduli = cur_moduli;
         let log_e: Vec<f64> = moduli.e.iter().map(|e| e.log10()).collect();
@@ -228,6 +288,12 @@ pub(crate) fn fit(
         metric("field_log10_E_p95", e95);
         metric("field_nu_p50", nu50);
         metric("field_tv", field.field.tv());
+        if p.field.truncate == Truncate::None {
+            metric("field_step_scale", search.scale);
+            if let Some(l) = loss_after {
+                metric("field_loss_after_step", l);
+            }
+        }
         for q in &others {
             metric(q.name(), values.get(*q).unwrap_or(f64::NAN));
         }
@@ -250,28 +316,49 @@ mod tests {
 
     #[test]
     fn a_field_needs_a_solid_and_e_or_nu_among_the_learned() {
-        let err = outputs(MaterialFamily::Newtonian, &[Param::Viscosity], "material")
-            .unwrap_err()
-            .to_string();
+        let both = [Param::E, Param::Nu];
+        let err = outputs(
+            MaterialFamily::Newtonian,
+            &[Param::Viscosity],
+            &both,
+            "material",
+        )
+        .unwrap_err()
+        .to_string();
         assert!(
             err.contains("model: field") && err.contains("newtonian"),
             "{err}"
         );
-        let err = outputs(MaterialFamily::Plasticine, &[Param::YieldStress], "m")
-            .unwrap_err()
-            .to_string();
+        let err = outputs(
+            MaterialFamily::Plasticine,
+            &[Param::YieldStress],
+            &both,
+            "m",
+        )
+        .unwrap_err()
+        .to_string();
         assert!(
-            err.contains("stages.m.model") && err.contains("neither"),
+            err.contains("stages.m.model") && err.contains("names none"),
             "{err}"
         );
         assert_eq!(
             outputs(
                 MaterialFamily::Plasticine,
                 &[Param::E, Param::Nu, Param::YieldStress],
+                &both,
                 "m"
             )
             .unwrap(),
             vec![Param::E, Param::Nu]
         );
+        // E varies, ν stays global (and is still learned).
+        assert_eq!(
+            outputs(MaterialFamily::Elastic, &both, &[Param::E], "m").unwrap(),
+            vec![Param::E]
+        );
+        let err = outputs(MaterialFamily::Elastic, &both, &[Param::YieldStress], "m")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("field.vary: `yield_stress`"), "{err}");
     }
 }

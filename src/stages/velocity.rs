@@ -20,23 +20,38 @@ use serde_json::{Value, json};
 
 use crate::physics::descent::LineSearch;
 use crate::physics::fit::{FitError, Inputs, PrecisionParam, RigidVelocity};
+use crate::physics::material_field::percentiles;
+use crate::physics::object::Object;
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::rollout::{Rollout, RolloutError, Wants, is_fluid};
+use crate::physics::step_search::{StepSearch, lerp};
 use crate::physics::track;
+use crate::physics::velocity_field::{
+    VelocityField, VelocityFieldSettings, WEIGHTS_FILE, initial_velocities, write_weights,
+};
 use crate::physics::views::{LossWeights, ViewsLoss};
 use crate::pipeline::spec::{Preset, SceneSpec};
 use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
+use crate::stages::material_select::{AutoSettings, ModelSelection, field_wins, held_out_views};
+use pipe_field::{AdamConfig as FieldAdamConfig, FieldAdam, LrSchedule};
 
 /// The velocity field learned.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum VelocityModel {
+    /// The rigid motion, then a field from it kept only when it lowers the loss on training
+    /// views it was not fitted on by more than `auto.margin` (as the material's `auto`);
+    /// `velocity.json`'s `model` is the one kept.
+    #[default]
+    Auto,
     /// One velocity for every particle (3 numbers).
     Translation,
     /// Linear and angular velocity about the centre of mass (6 numbers): a thrown or dropped
     /// object.
-    #[default]
     Rigid,
+    /// The rigid motion plus a triplane + MLP residual per particle (the `field:` block;
+    /// [`crate::physics::velocity_field`]).
+    Field,
 }
 
 /// Where the descent starts.
@@ -92,6 +107,12 @@ pub struct VelocityParams {
     /// Weight of the silhouette term `mean|α − mask|`.
     #[serde(default = "alpha_weight")]
     pub alpha_weight: f64,
+    /// The field of `model: field` and `model: auto`.
+    #[serde(default)]
+    pub field: VelocityFieldSettings,
+    /// How `model: auto` decides.
+    #[serde(default)]
+    pub auto: AutoSettings,
 }
 
 fn frames() -> u16 {
@@ -136,7 +157,8 @@ pub struct Velocity;
 /// `velocity.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct VelocityResult {
-    /// `translation` or `rigid`.
+    /// `translation`, `rigid` or `field` (the rigid motion plus the residual field in
+    /// `field.velocity.arrow`; `model: auto` says which it kept).
     pub model: VelocityModel,
     /// Linear velocity of the centre of mass (m/s).
     pub linear_velocity: [f64; 3],
@@ -163,12 +185,52 @@ pub struct VelocityResult {
     pub particles: usize,
     pub gaussians: usize,
     pub floaters: usize,
+    /// `model: field`: the residual's speeds and the loss of the rigid motion it refined.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field: Option<VelocityFieldSummary>,
+    /// `model: auto`: the two models' held-out losses and which was kept.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub selection: Option<ModelSelection>,
+}
+
+/// The learned velocity field in `velocity.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VelocityFieldSummary {
+    /// 5th, 50th and 95th percentiles of the residual's speed over the particles (m/s).
+    pub residual_speed_p05_p50_p95: [f64; 3],
+    /// Loss at the rigid motion the field started from.
+    pub loss_rigid: f64,
+    /// The weights' table and their count.
+    pub weights_table: String,
+    pub weights: usize,
+}
+
+impl VelocityResult {
+    /// The initial velocity of every particle of `object` (m/s) as learned (about `object`'s
+    /// own centre of mass), the field's residual included; `dir` is the `velocity` entry.
+    ///
+    /// # Errors
+    /// An unreadable field, named.
+    pub fn velocities(
+        &self,
+        object: &crate::physics::object::Object,
+        dir: &std::path::Path,
+    ) -> Result<Vec<DVec3>, StageError> {
+        let rigid = RigidVelocity {
+            linear: self.linear_velocity,
+            angular: self.angular_velocity,
+            centre: object.centre_of_mass().to_array(),
+        };
+        let field = (self.model == VelocityModel::Field).then(|| dir.join(WEIGHTS_FILE));
+        initial_velocities(object, &rigid, field.as_deref())
+            .map_err(|e| StageError::failed(FitError::Invalid(e)))
+    }
 }
 
 impl TypedStage for Velocity {
     type Params = VelocityParams;
     const KIND: &'static str = "velocity";
-    const VERSION: u32 = 4;
+    const VERSION: u32 = 5;
     const DESCRIPTION: &'static str = "Learn the initial velocity from the first frames (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup"];
 
@@ -178,9 +240,11 @@ impl TypedStage for Velocity {
 
     fn preset_params(&self, preset: Preset) -> Value {
         match preset {
-            Preset::Draft => json!({"epochs": 12, "cells": 16}),
-            Preset::Standard => json!({"epochs": 30, "cells": 24}),
-            Preset::Paper => json!({"epochs": 100, "cells": 32, "precision": "f64"}),
+            Preset::Draft => json!({"epochs": 12, "cells": 16, "field": {"epochs": 12}}),
+            Preset::Standard => json!({"epochs": 30, "cells": 24, "field": {"epochs": 30}}),
+            Preset::Paper => json!({
+                "epochs": 100, "cells": 32, "precision": "f64", "field": {"epochs": 100}
+            }),
         }
     }
 
@@ -225,6 +289,28 @@ impl TypedStage for Velocity {
                 "alpha_weight",
                 format!("must be >= 0, found {}", p.alpha_weight),
             );
+        }
+        if !(p.auto.margin.is_finite() && (0.0..1.0).contains(&p.auto.margin)) {
+            return bad(
+                "auto.margin",
+                format!("must be in [0, 1), found {}", p.auto.margin),
+            );
+        }
+        if matches!(p.model, VelocityModel::Field | VelocityModel::Auto) {
+            if let Err(e) = p.field.config().validate() {
+                return bad("field", e.to_string());
+            }
+            for (name, v) in [
+                ("field.lr", p.field.lr),
+                ("field.lr_final", p.field.lr_final),
+            ] {
+                if !(v.is_finite() && v > 0.0) {
+                    return bad(name, format!("must be finite and > 0, found {v}"));
+                }
+            }
+            if p.field.epochs == Some(0) {
+                return bad("field.epochs", "must be at least 1".into());
+            }
         }
         check_guess(&p.guess)
     }
@@ -272,7 +358,7 @@ impl TypedStage for Velocity {
         };
         let dims = match p.model {
             VelocityModel::Translation => 3,
-            VelocityModel::Rigid => 6,
+            VelocityModel::Rigid | VelocityModel::Field | VelocityModel::Auto => 6,
         };
         let mut x: Vec<f64> = start_v.to_array().to_vec();
         x.resize(dims, 0.0);
@@ -412,14 +498,127 @@ impl TypedStage for Velocity {
             .map_err(|e| fail(p.epochs, e))
         };
         let loss_start = eval(&start, &mut loss)?;
-        let loss_final = eval(&x, &mut loss)?;
+        let loss_rigid = eval(&x, &mut loss)?;
         let field = rigid(&x);
+        let fit_field = |ctx: &mut StageContext<'_>, loss: &mut ViewsLoss<'_>| {
+            fit_velocity_field(
+                &p.field,
+                p.epochs,
+                ctx,
+                &Frozen {
+                    object: &object,
+                    material: &material,
+                    base: field.field(&object),
+                    last,
+                    precision,
+                    interrupt,
+                },
+                loss,
+            )
+        };
+        let base_model = match p.model {
+            VelocityModel::Translation => VelocityModel::Translation,
+            _ => VelocityModel::Rigid,
+        };
+        let (learned_field, selection) = match p.model {
+            VelocityModel::Translation | VelocityModel::Rigid => (None, None),
+            VelocityModel::Field => (Some(fit_field(ctx, &mut loss)?), None),
+            VelocityModel::Auto => {
+                let mut train: Vec<u16> = targets.iter().map(|t| t.row.view).collect();
+                train.sort_unstable();
+                train.dedup();
+                let held =
+                    held_out_views(&train, p.auto.held_out_views.as_deref()).map_err(|m| {
+                        StageError::failed(FitError::Invalid(format!("stages.{}.{m}", ctx.name)))
+                    })?;
+                let fit_views: Vec<u16> = train
+                    .iter()
+                    .copied()
+                    .filter(|v| !held.contains(v))
+                    .collect();
+                let mut held_loss = ViewsLoss::new(
+                    &object,
+                    fluid,
+                    targets.iter().filter(|t| held.contains(&t.row.view)),
+                    weights,
+                    inputs.background,
+                );
+                let mut fit_loss = ViewsLoss::new(
+                    &object,
+                    fluid,
+                    targets.iter().filter(|t| !held.contains(&t.row.view)),
+                    weights,
+                    inputs.background,
+                );
+                ctx.progress.log(&format!(
+                    "velocity auto: the field is fitted on views {fit_views:?} and compared with the rigid motion on views {held:?}"
+                ));
+                let f = fit_field(ctx, &mut fit_loss)?;
+                let lg = eval(&x, &mut held_loss)?;
+                let lf = run_loss(
+                    &object,
+                    &material,
+                    &f.1,
+                    last,
+                    precision,
+                    interrupt,
+                    &mut held_loss,
+                )
+                .map_err(|e| fail(p.epochs, e))?;
+                let wins = field_wins(lg, lf, p.auto.margin);
+                let reason = format!(
+                    "held-out loss {lf:.5} with the field against {lg:.5} with the rigid motion ({:+.2} %); the field {} by more than {:.1} %",
+                    100.0 * (lf / lg - 1.0),
+                    if wins { "wins" } else { "does not win" },
+                    100.0 * p.auto.margin
+                );
+                ctx.progress.log(&format!("velocity auto: {reason}"));
+                let selection = ModelSelection {
+                    kept: if wins { "field" } else { "rigid" }.into(),
+                    reason,
+                    held_out_views: held,
+                    fit_views,
+                    loss_global_held_out: Some(lg),
+                    loss_field_held_out: Some(lf),
+                    margin: p.auto.margin,
+                };
+                (wins.then_some(f), Some(selection))
+            }
+        };
+        let (model, v0, summary) = match &learned_field {
+            None => (base_model, field.field(&object), None),
+            Some((vf, v0)) => {
+                write_weights(&ctx.out_dir.join(WEIGHTS_FILE), vf).map_err(StageError::failed)?;
+                let speeds: Vec<f64> = v0
+                    .iter()
+                    .zip(field.field(&object))
+                    .map(|(v, r)| (*v - r).length())
+                    .collect();
+                (
+                    VelocityModel::Field,
+                    v0.clone(),
+                    Some(VelocityFieldSummary {
+                        residual_speed_p05_p50_p95: percentiles(&speeds),
+                        loss_rigid,
+                        weights_table: WEIGHTS_FILE.into(),
+                        weights: vf.field.param_count(),
+                    }),
+                )
+            }
+        };
+        let loss_final = run_loss(
+            &object, &material, &v0, last, precision, interrupt, &mut loss,
+        )
+        .map_err(|e| fail(p.epochs, e))?;
+        let mass = &object.body.material.mass;
+        let mean_v =
+            v0.iter().zip(mass).map(|(v, m)| *v * *m).sum::<DVec3>() / mass.iter().sum::<f64>();
         let result = VelocityResult {
-            model: p.model,
+            model,
             linear_velocity: field.linear,
             angular_velocity: field.angular,
             centre_of_mass: centre,
-            initial_velocity: field.mean(&object).to_array(),
+            initial_velocity: mean_v.to_array(),
             start_velocity: [start[0], start[1], start[2]],
             init: p.init,
             frames: p.frames,
@@ -429,6 +628,8 @@ impl TypedStage for Velocity {
             particles: object.particles(),
             gaussians: object.rendered(),
             floaters: object.floaters,
+            field: summary,
+            selection,
         };
         for (metric, value) in [("loss_start", loss_start), ("loss_final", loss_final)] {
             ctx.metric(MetricRow {
@@ -461,6 +662,169 @@ impl TypedStage for Velocity {
             .map_err(StageError::failed)?;
         Ok(())
     }
+}
+
+/// What the velocity field's fit holds fixed.
+struct Frozen<'a> {
+    object: &'a Object,
+    material: &'a MaterialValues,
+    /// The rigid motion of every particle (m/s).
+    base: Vec<DVec3>,
+    last: u16,
+    precision: pipe_mpm::Precision,
+    interrupt: &'a std::sync::atomic::AtomicBool,
+}
+
+/// The loss of initial velocities `v0` over frames `1..=last`.
+fn run_loss(
+    object: &Object,
+    material: &MaterialValues,
+    v0: &[DVec3],
+    last: u16,
+    precision: pipe_mpm::Precision,
+    interrupt: &std::sync::atomic::AtomicBool,
+    loss: &mut ViewsLoss<'_>,
+) -> Result<f64, RolloutError> {
+    Rollout {
+        object,
+        material,
+        v0,
+        frames: last,
+        precision,
+        interrupt: Some(interrupt),
+        moduli: None,
+    }
+    .run(loss, Wants::Loss)
+    .map(|o| o.loss())
+}
+
+/// The residual field from zero (the rigid motion `fixed.base`): Adam's direction on the
+/// gradient through every frame, its length searched on the loss ([`StepSearch`]).
+fn fit_velocity_field(
+    settings: &VelocityFieldSettings,
+    stage_epochs: u32,
+    ctx: &mut StageContext<'_>,
+    fixed: &Frozen<'_>,
+    loss: &mut ViewsLoss<'_>,
+) -> Result<(VelocityField, Vec<DVec3>), StageError> {
+    let training = |epoch: u32, message: String| {
+        StageError::failed(FitError::Training {
+            epoch,
+            message: format!("velocity field: {message}"),
+        })
+    };
+    let points: Vec<[f64; 3]> = fixed
+        .object
+        .body
+        .state
+        .x
+        .iter()
+        .map(|x| x.to_array())
+        .collect();
+    let mut vf = VelocityField::zero(settings, points).map_err(|e| {
+        StageError::failed(FitError::Invalid(format!("stages.{}.field: {e}", ctx.name)))
+    })?;
+    let epochs = settings.epochs.unwrap_or(stage_epochs);
+    let schedule = LrSchedule::exponential(settings.lr, settings.lr_final, epochs.max(2));
+    let mut adam = FieldAdam::new(&vf.field, schedule, schedule, FieldAdamConfig::default())
+        .map_err(|e| {
+            StageError::failed(FitError::Invalid(format!("stages.{}.field: {e}", ctx.name)))
+        })?;
+    let v0_of = |vf: &VelocityField| -> Option<Vec<DVec3>> {
+        let r = vf.residual().ok()?;
+        Some(fixed.base.iter().zip(r).map(|(b, r)| *b + r).collect())
+    };
+    let mut search = StepSearch::default();
+    let mut v0 = fixed.base.clone();
+    ctx.progress.log(&format!(
+        "velocity field: {}² planes × {} channels, MLP {}×{}, {} weights, {epochs} epochs from the rigid motion",
+        settings.resolution,
+        settings.channels,
+        settings.layers,
+        settings.hidden,
+        vf.field.param_count()
+    ));
+    ctx.progress.start("field epoch", u64::from(epochs));
+    for epoch in 0..epochs {
+        ctx.check_interrupted()?;
+        let out = Rollout {
+            object: fixed.object,
+            material: fixed.material,
+            v0: &v0,
+            frames: fixed.last,
+            precision: fixed.precision,
+            interrupt: Some(fixed.interrupt),
+            moduli: None,
+        }
+        .run(loss, Wants::Velocity)
+        .map_err(|e| match e {
+            RolloutError::Interrupted => StageError::Interrupted,
+            e => training(epoch, e.to_string()),
+        })?;
+        let g = out.v0.as_ref().expect("a velocity rollout gives ∂L/∂v0");
+        let mut grad = vf.backward(g).map_err(|e| training(epoch, e.to_string()))?;
+        vf.field
+            .tv_backward(&mut grad)
+            .map_err(|e| training(epoch, e.to_string()))?;
+        let before = vf.field.to_flat();
+        adam.step(&mut vf.field, &grad)
+            .map_err(|e| training(epoch, e.to_string()))?;
+        let stepped = vf.field.to_flat();
+        let found = search.run(out.loss(), |t| {
+            vf.field
+                .set_flat(&lerp(&before, &stepped, t))
+                .map_err(|e| training(epoch, e.to_string()))?;
+            let Some(trial) = v0_of(&vf) else {
+                return Ok(None);
+            };
+            match run_loss(
+                fixed.object,
+                fixed.material,
+                &trial,
+                fixed.last,
+                fixed.precision,
+                fixed.interrupt,
+                loss,
+            ) {
+                Ok(l) => Ok(Some(l)),
+                Err(RolloutError::Interrupted) => Err(StageError::Interrupted),
+                Err(_) => Ok(None),
+            }
+        })?;
+        let t = found.map_or(0.0, |(t, _)| t);
+        vf.field
+            .set_flat(&lerp(&before, &stepped, t))
+            .map_err(|e| training(epoch, e.to_string()))?;
+        v0 = v0_of(&vf).ok_or_else(|| training(epoch, "non-finite residual".into()))?;
+        let speeds: Vec<f64> = v0
+            .iter()
+            .zip(&fixed.base)
+            .map(|(v, b)| (*v - *b).length())
+            .collect();
+        let [_, s50, s95] = percentiles(&speeds);
+        let mut metric = |name: &str, value: f64| {
+            ctx.metric(MetricRow {
+                epoch: Some(epoch),
+                view: None,
+                frame: None,
+                metric: name.into(),
+                value,
+            })
+        };
+        metric("field_loss", out.loss());
+        metric("field_residual_speed_p50", s50);
+        metric("field_residual_speed_p95", s95);
+        metric("field_step_scale", search.scale);
+        if let Some((_, l)) = found {
+            metric("field_loss_after_step", l);
+        }
+        ctx.progress.message(&format!(
+            "loss {:.5}  residual speed p50/p95 {s50:.4}/{s95:.4} m/s",
+            out.loss()
+        ));
+        ctx.progress.inc(1);
+    }
+    Ok((vf, v0))
 }
 
 /// `guess:` values are finite, in their parameter's range.

@@ -47,7 +47,7 @@ fn pipeline(dir: &Path, name: &str, lr: f64) -> PathBuf {
     std::fs::write(
         &file,
         format!(
-            "name: {name}\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: [10]\n  material: elastic\npreset: draft\nstages:\n  ingest: {{frames: [0, 1, 2, 3, 4]}}\n  init: {{}}\n  warmup: {{epochs: 5}}\n  velocity: {{epochs: 1, frames: 3, cells: 10}}\n  material: {{epochs: 1, cells: 10, lr: {lr}}}\n  evaluate: {{}}\n",
+            "name: {name}\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: [10]\n  material: elastic\npreset: draft\nstages:\n  ingest: {{frames: [0, 1, 2, 3, 4]}}\n  init: {{}}\n  warmup: {{epochs: 5}}\n  velocity: {{epochs: 1, frames: 3, cells: 10}}\n  material: {{model: global, epochs: 1, cells: 10, lr: {lr}}}\n  evaluate: {{}}\n",
             scene.display()
         ),
     )

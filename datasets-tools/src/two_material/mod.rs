@@ -14,7 +14,9 @@
 //! `all_data.json`; `data/r_<cam>_-1.png` (plates: the backdrop alone) and
 //! `data/r_<cam>_<frame>.png`; `gt/masks/m_<cam>_<frame>.png` (the spheres' coverage, 8-bit);
 //! `gt/particles/<frame>.ply` (positions, float32); `gt/particles_rest_color.ply` (frame 0
-//! with each particle's colour); `gt/params.json` (the truth: `E_soft`, `E_stiff`, `split_x`,
+//! with each particle's colour); `gt/material_particles.ply` (frame 0 with each particle's `E`
+//! and `nu`, the per-particle truth `evaluate` scores a material field against);
+//! `gt/params.json` (the truth: `E_soft`, `E_stiff`, `split_x`,
 //! `nu`, `v0`, `rho`, …, and `E` = the geometric mean `sqrt(E_soft · E_stiff)`, which is what
 //! the pipeline's error report compares a single learned E with).
 //!
@@ -299,6 +301,12 @@ fn write_scene(args: &Args) -> Result<()> {
         &dst.join("gt/particles_rest_color.ply"),
         &to_f32(&bar.rest),
         Some(&colours),
+    )?;
+    let nu = vec![args.nu; bar.rest.len()];
+    ply::write_point_scalars(
+        &dst.join("gt/material_particles.ply"),
+        &to_f32(&bar.rest),
+        &[("E", &setting.youngs_modulus), ("nu", &nu)],
     )?;
 
     // Measured on the positions as written (float32), so the numbers are the files'.

@@ -12,12 +12,14 @@ mod body;
 mod gaussians;
 mod header;
 mod points;
+mod scalars;
 mod write;
 
 use std::path::PathBuf;
 
 pub use gaussians::{read_gaussians, write_gaussians};
 pub use points::{read_points, write_points};
+pub use scalars::{PointScalars, read_point_scalars, write_point_scalars};
 
 /// Points with optional colours.
 #[derive(Debug, Clone, PartialEq, Default)]

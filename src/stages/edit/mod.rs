@@ -45,8 +45,10 @@ use self::select::{Acting, Targets};
 use crate::io::image::Rgb8;
 use crate::io::video::{self, Mp4};
 use crate::physics::fit::frame_interval;
+use crate::physics::material_field::read_moduli;
 use crate::physics::object::{DEFAULT_CELLS, Object, ObjectSettings, render_filter};
 use crate::physics::params::{MaterialValues, Param};
+use crate::physics::rollout::{Moduli, is_fluid, material_of};
 use crate::pipeline::progress::Progress;
 use crate::pipeline::spec::{MaterialFamily, SceneSpec};
 use crate::pipeline::stage::{ParamError, StageContext, StageError, TypedStage};
@@ -55,7 +57,7 @@ use crate::scene::deform::deform;
 use crate::scene::frames::{FrameRow, Frames, Role};
 use crate::scene::gaussians::{Gaussians, sh_coeffs};
 use crate::simulate::{FrameStats, SimulateError, Stepped, splat_deformation};
-use crate::stages::material::MaterialResult;
+use crate::stages::material::{MaterialModel, MaterialResult};
 use crate::stages::velocity::VelocityResult;
 
 /// Why an edit did not produce its outputs.
@@ -101,9 +103,15 @@ pub struct Scene {
     pub scene: SceneSpec,
     /// The learned material (`material`), if the pipeline has one.
     pub learned: Option<MaterialValues>,
+    /// The learned material field's weights (`field.material.arrow`), when `material` kept a
+    /// field: each of the edit's particles takes its E and ν at its rest position.
+    pub learned_field: Option<PathBuf>,
     /// The learned initial motion, if any: linear (m/s, of the centre of mass) and angular
     /// (rad/s) velocity.
     pub velocity: Option<([f64; 3], [f64; 3])>,
+    /// The learned velocity field's weights, when `velocity` kept one (added to the rigid
+    /// motion at each particle's rest position with `keep_velocity`).
+    pub velocity_field: Option<PathBuf>,
     /// The capture's frame interval (s) and frame count.
     pub frame_dt: f64,
     pub frames: u32,
@@ -235,7 +243,7 @@ pub struct Edit;
 impl TypedStage for Edit {
     type Params = EditParams;
     const KIND: &'static str = "edit";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
     const DESCRIPTION: &'static str = "Simulate new motion of the learned scene (forces, impulses, material, gravity and boundary changes) and render it as PNG frames, GIFs, MP4s and per-frame 3DGS PLYs";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity", "material"];
     const NAMED_INSTANCES: bool = true;
@@ -312,18 +320,24 @@ fn read_scene(ctx: &StageContext<'_>) -> Result<Scene, EditError> {
         return Err(inputs(&"warmup produced no Gaussians"));
     }
     let material = ctx.upstream("material").ok();
-    let learned = match material {
+    let (learned, learned_field) = match material {
         Some(m) => {
             let r: MaterialResult =
                 crate::io::read_json(&m.dir.join("material.json")).map_err(|e| inputs(&e))?;
-            Some(learned_values(&r).map_err(|e| inputs(&e))?)
+            let field =
+                (r.model == MaterialModel::Field).then(|| m.dir.join("field.material.arrow"));
+            (Some(learned_values(&r).map_err(|e| inputs(&e))?), field)
         }
-        None => None,
+        None => (None, None),
     };
+    let mut velocity_field = None;
     let velocity = match ctx.upstream("velocity") {
         Ok(v) => {
             let r: VelocityResult =
                 crate::io::read_json(&v.dir.join("velocity.json")).map_err(|e| inputs(&e))?;
+            if r.model == crate::stages::velocity::VelocityModel::Field {
+                velocity_field = Some(v.dir.join(crate::physics::velocity_field::WEIGHTS_FILE));
+            }
             Some((r.linear_velocity, r.angular_velocity))
         }
         Err(_) => match material {
@@ -378,7 +392,9 @@ fn read_scene(ctx: &StageContext<'_>) -> Result<Scene, EditError> {
         gaussians,
         scene: ctx.scene.clone(),
         learned,
+        learned_field,
         velocity,
+        velocity_field,
         frame_dt,
         frames: u32::from(frame_count) + 1,
         cells,
@@ -387,6 +403,38 @@ fn read_scene(ctx: &StageContext<'_>) -> Result<Scene, EditError> {
         default_views,
         location,
     })
+}
+
+/// The change an edit makes to parameter `p`, if any.
+fn change_of(edit: &MaterialEdit, p: Param) -> Option<Change> {
+    edit.changes().into_iter().find(|c| c.1 == p).map(|c| c.2)
+}
+
+/// The learned field's E and ν at the edit's particles (rest positions), with the edit's
+/// changes: a scale multiplies every particle's value, a value replaces the field's. `None`
+/// without a learned field, or when the edit simulates another family.
+fn field_moduli(
+    scene: &Scene,
+    edit: &MaterialEdit,
+    material: &MaterialValues,
+    object: &Object,
+) -> Result<Option<Moduli>, String> {
+    let (Some(path), Some(learned)) = (&scene.learned_field, &scene.learned) else {
+        return Ok(None);
+    };
+    if material.family != learned.family || is_fluid(material.family) {
+        return Ok(None);
+    }
+    let rest = object.body.state.x.iter().map(|x| x.to_array()).collect();
+    let mut m = read_moduli(path, rest, learned)?;
+    for (p, column) in [(Param::E, &mut m.e), (Param::Nu, &mut m.nu)] {
+        match change_of(edit, p) {
+            Some(Change::Value(v)) => column.fill(v),
+            Some(Change::Scale { scale }) => column.iter_mut().for_each(|x| *x *= scale),
+            None => {}
+        }
+    }
+    Ok(Some(m))
 }
 
 /// `material.json` as values of its family.
@@ -596,7 +644,7 @@ pub fn run(
     let output = |path: &Path, e: &dyn std::fmt::Display| {
         EditError::Output(format!("{}: {e}", path.display()))
     };
-    let (material, material_source) = resolve_material(scene, &p.material)?;
+    let (material, mut material_source) = resolve_material(scene, &p.material)?;
     let mut sim_scene = scene.scene.clone();
     if let Some(g) = p.gravity {
         sim_scene.gravity = g;
@@ -624,6 +672,20 @@ pub fn run(
         splat_filter: scene.splat_filter,
     };
     let mut object = Object::build(&moving, &settings).map_err(sim_error)?;
+    if let Some(moduli) = field_moduli(scene, &p.material, &material, &object)
+        .map_err(|e| EditError::Inputs(format!("{location}: {e}")))?
+    {
+        object.body.material = material_of(&object, &material, Some(&moduli)).map_err(|e| {
+            EditError::Inputs(format!("{location}: the learned field's moduli: {e}"))
+        })?;
+        for (key, q) in [("youngs_modulus", Param::E), ("poisson_ratio", Param::Nu)] {
+            if let Some(s) = material_source.get_mut(key)
+                && !matches!(change_of(&p.material, q), Some(Change::Value(_)))
+            {
+                *s = format!("{s} (the learned field, per particle)");
+            }
+        }
+    }
     let n_g = object.rendered();
     let fixed_x: Vec<DVec3> = fixed.position.iter().copied().map(position).collect();
     let resolved = select::resolve(
@@ -661,11 +723,23 @@ pub fn run(
                     .into(),
             ));
         };
-        let (v, w) = (DVec3::from_array(linear), DVec3::from_array(angular));
-        for (vp, x) in object.body.state.v.iter_mut().zip(&object.body.state.x) {
-            *vp = v + w.cross(*x - com);
-        }
-        json!({"linear_m_s": linear, "angular_rad_s": angular, "about_m": com.to_array()})
+        let rigid = crate::physics::fit::RigidVelocity {
+            linear,
+            angular,
+            centre: com.to_array(),
+        };
+        object.body.state.v = crate::physics::velocity_field::initial_velocities(
+            &object,
+            &rigid,
+            scene.velocity_field.as_deref(),
+        )
+        .map_err(|e| EditError::Inputs(format!("{location}: {e}")))?;
+        json!({
+            "linear_m_s": linear,
+            "angular_rad_s": angular,
+            "about_m": com.to_array(),
+            "field": scene.velocity_field.as_ref().map(|_| "the learned residual field, per particle"),
+        })
     } else {
         object
             .body

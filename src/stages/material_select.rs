@@ -1,0 +1,137 @@
+//! `material: {model: auto}`: the simplest model the frames support, measured on views the
+//! field never saw.
+//!
+//! The global model is fitted first on every training view (exactly `model: global`'s fit).
+//! Then a field, started from it, is fitted on the training views minus a held-out set, and
+//! both are scored on the held-out views alone. The field is kept only when it lowers that
+//! loss by more than `margin` (relative). The global model saw the held-out views and the field
+//! did not, so the comparison leans towards the simpler model: a field is kept only when the
+//! object really is not uniform. When the global model is kept, every figure is the global
+//! model's.
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+/// Settings of `model: auto` (the `auto:` block of `material`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct AutoSettings {
+    /// Training views held out of the field's fit and used to decide (default: every fourth
+    /// training view, from the fourth on; at least one).
+    #[serde(default)]
+    pub held_out_views: Option<Vec<u16>>,
+    /// The field is kept when its held-out loss is below `(1 − margin)` × the global model's.
+    #[serde(default = "margin")]
+    pub margin: f64,
+}
+
+fn margin() -> f64 {
+    0.02
+}
+
+impl Default for AutoSettings {
+    fn default() -> Self {
+        Self {
+            held_out_views: None,
+            margin: margin(),
+        }
+    }
+}
+
+/// What `model: auto` compared and kept (`material.json`'s `selection`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct ModelSelection {
+    /// The model kept (`global` or `field` for the material; `rigid`, `translation` or
+    /// `field` for the velocity).
+    pub kept: String,
+    /// Why, in words.
+    pub reason: String,
+    /// The views the decision was scored on, and those the field was fitted on.
+    pub held_out_views: Vec<u16>,
+    pub fit_views: Vec<u16>,
+    /// The loss on the held-out views of the global fit and of the field (when one was fitted).
+    pub loss_global_held_out: Option<f64>,
+    pub loss_field_held_out: Option<f64>,
+    /// The relative margin the field had to win by.
+    pub margin: f64,
+}
+
+/// The held-out views among `train` (sorted, distinct): `asked`, checked, or every fourth from
+/// the fourth (at least one). At least one training view must remain for the fit.
+///
+/// # Errors
+/// Fewer than two training views, an asked view that is not a training view, or a set that
+/// leaves none to fit, named.
+pub fn held_out_views(train: &[u16], asked: Option<&[u16]>) -> Result<Vec<u16>, String> {
+    if train.len() < 2 {
+        return Err(format!(
+            "model: auto holds training views out to decide, and the capture has {} training view(s); use `model: global` or `model: field`",
+            train.len()
+        ));
+    }
+    let held: Vec<u16> = match asked {
+        Some(a) => {
+            if let Some(v) = a.iter().find(|v| !train.contains(v)) {
+                return Err(format!(
+                    "auto.held_out_views: view {v} is not a training view (they are {train:?})"
+                ));
+            }
+            let mut a = a.to_vec();
+            a.sort_unstable();
+            a.dedup();
+            a
+        }
+        None => {
+            let every: Vec<u16> = train.iter().skip(3).step_by(4).copied().collect();
+            if every.is_empty() {
+                vec![train[train.len() - 1]]
+            } else {
+                every
+            }
+        }
+    };
+    if held.is_empty() {
+        return Err("auto.held_out_views: empty; leave it out for the default".into());
+    }
+    if held.len() >= train.len() {
+        return Err(format!(
+            "auto.held_out_views: {held:?} leaves no training view to fit the field on"
+        ));
+    }
+    Ok(held)
+}
+
+/// Whether the field's held-out loss beats the global model's by more than `margin`.
+pub fn field_wins(global: f64, field: f64, margin: f64) -> bool {
+    field.is_finite() && global.is_finite() && field < (1.0 - margin) * global
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn held_out_views_are_spread_checked_and_leave_views_to_fit() {
+        let train: Vec<u16> = (0..10).collect();
+        assert_eq!(held_out_views(&train, None).unwrap(), vec![3, 7]);
+        assert_eq!(held_out_views(&[0, 4], None).unwrap(), vec![4]);
+        assert_eq!(
+            held_out_views(&train, Some(&[5, 2, 5])).unwrap(),
+            vec![2, 5]
+        );
+        let err = held_out_views(&train, Some(&[12])).unwrap_err();
+        assert!(err.contains("view 12 is not a training view"), "{err}");
+        let err = held_out_views(&[1, 2], Some(&[1, 2])).unwrap_err();
+        assert!(err.contains("leaves no training view"), "{err}");
+        let err = held_out_views(&[3], None).unwrap_err();
+        assert!(err.contains("1 training view"), "{err}");
+    }
+
+    #[test]
+    fn the_field_must_win_by_the_margin() {
+        assert!(field_wins(1.0, 0.97, 0.02));
+        assert!(!field_wins(1.0, 0.99, 0.02));
+        assert!(!field_wins(1.0, f64::NAN, 0.02));
+        assert!(!field_wins(f64::NAN, 0.5, 0.02));
+    }
+}
