@@ -283,6 +283,20 @@ fn malformed_physdreamer_files_name_the_file_field_and_value() {
         e.contains("`w`: 100 pixels, but the frames of camera 0 are 80×80"),
         "{e}"
     );
+    // Cameras whose videos do not start together.
+    edit_json(&|v| v["frames"][3]["time"] = serde_json::json!(0.5));
+    let e = ingest("time");
+    assert!(
+        e.contains("`frames[3].time`: 0.5 s, but camera `frame_00000` starts at 0 s"),
+        "{e}"
+    );
+    // No cameras at all.
+    std::fs::remove_file(&transforms).unwrap();
+    let e = ingest("no cameras");
+    assert!(
+        e.contains("no cameras: neither transforms_train.json nor sparse/0/ exists"),
+        "{e}"
+    );
     std::fs::write(&transforms, &original).unwrap();
 
     // Frame counts that differ between cameras.
