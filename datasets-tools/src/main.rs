@@ -12,8 +12,13 @@
 //! `datasets-tools two-material DST [--size 100] [--frames 14] [--views 11] [--ratio 30] ...`
 //! writes a generated scene of a bar whose halves differ in Young's modulus, simulated with
 //! per-particle materials and ray-traced as spheres ([`two_material`]).
+//!
+//! `datasets-tools physdreamer DST [--size 80] [--frames 6] [--views 4] ...` writes a generated
+//! scene in the PhysDreamer layout: a pot, a swaying leaf on it (the moving part) and a stone
+//! beside it (clutter), as Gaussians with the selection points and videos ([`physdreamer`]).
 
 mod composite;
+mod physdreamer;
 mod resample;
 mod shadow;
 mod texture;
@@ -32,7 +37,7 @@ use resample::{box_filter_luma, box_filter_rgb};
 #[derive(Debug, Parser)]
 #[command(
     name = "datasets-tools",
-    about = "Make and reshape scenes in the PAC-NeRF layout"
+    about = "Make and reshape scenes in the PAC-NeRF and PhysDreamer layouts"
 )]
 struct Cli {
     #[command(subcommand)]
@@ -84,6 +89,11 @@ enum Command {
     /// simulated with per-particle materials and ray-traced as shaded spheres, with its
     /// ground truth (gt/params.json, gt/particles, gt/masks).
     TwoMaterial(two_material::Args),
+    /// Write a generated scene in the PhysDreamer layout: a static pot, a swaying leaf on it
+    /// (the moving part) and a stone beside it (clutter) as a 3DGS `point_cloud.ply`, with
+    /// `clean_object_points.ply`, `moving_part_points.ply`, `transforms_train.json`, and a
+    /// video and masks per camera.
+    Physdreamer(physdreamer::Args),
 }
 
 fn main() -> Result<()> {
@@ -113,6 +123,7 @@ fn main() -> Result<()> {
             factor,
         }),
         Command::TwoMaterial(args) => two_material::run(&args),
+        Command::Physdreamer(args) => physdreamer::run(&args),
     }
 }
 
@@ -194,4 +205,39 @@ fn scale_intrinsics(mut e: Value, factor: u32) -> Result<Value> {
         k[r][c] = serde_json::json!(v / f64::from(factor));
     }
     Ok(e)
+}
+
+/// Runs `write` to fill `dst`, which must not exist or be empty; a `write` that fails leaves
+/// the folder as it found it (only what the run made is removed).
+pub(crate) fn into_empty_folder(dst: &Path, write: impl FnOnce() -> Result<()>) -> Result<()> {
+    let existed = dst.exists();
+    if existed
+        && fs::read_dir(dst)
+            .with_context(|| format!("reading {}", dst.display()))?
+            .next()
+            .is_some()
+    {
+        bail!(
+            "{}: exists and is not empty; remove it or choose another folder",
+            dst.display()
+        );
+    }
+    let written = write();
+    if written.is_err() {
+        let _ = if existed {
+            fs::read_dir(dst).map(|entries| {
+                for e in entries.flatten() {
+                    let p = e.path();
+                    let _ = if p.is_dir() {
+                        fs::remove_dir_all(&p)
+                    } else {
+                        fs::remove_file(&p)
+                    };
+                }
+            })
+        } else {
+            fs::remove_dir_all(dst)
+        };
+    }
+    written
 }

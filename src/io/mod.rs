@@ -1,10 +1,12 @@
 //! File formats: where outside data enters, and is validated.
 
+pub mod capture;
 pub mod colmap;
 pub mod exr;
 pub mod image;
 pub mod pacnerf;
 pub mod parquet;
+pub mod physdreamer;
 pub mod ply;
 pub mod resample;
 pub mod video;

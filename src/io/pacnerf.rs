@@ -11,6 +11,8 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+use super::capture::{Capture, CaptureImage, DatasetFile};
+
 /// One image listed in `all_data.json`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PacnerfImage {
@@ -154,6 +156,15 @@ pub fn read_cameras(path: &Path) -> Result<PacnerfScene, PacnerfError> {
                 "expected a name like ./data/r_<camera>_<frame>.png".into(),
             )
         })?;
+        if frame > i32::from(u16::MAX) {
+            return Err(bad(
+                "file_path",
+                format!(
+                    "frame {frame} is beyond the largest frame index {}",
+                    u16::MAX
+                ),
+            ));
+        }
         if !e.time.is_finite() {
             return Err(bad("time", format!("not a finite number: {}", e.time)));
         }
@@ -204,6 +215,38 @@ pub fn gt_mask_path(root: &Path, view: u16, frame: i32) -> PathBuf {
         .join(format!("m_{view}_{frame}.png"))
 }
 
+/// The scene as the layout-independent [`Capture`] `ingest` reads: its object images with
+/// their ground-truth mask locations, its plates and `all_data.json`.
+pub fn capture(scene: &PacnerfScene, camera_file: &Path) -> Capture {
+    let file = |img: &PacnerfImage| DatasetFile {
+        logical_name: img.logical_name.clone(),
+        path: img.path.clone(),
+    };
+    Capture {
+        images: scene
+            .images
+            .iter()
+            .map(|img| CaptureImage {
+                view: img.view,
+                frame: u16::try_from(img.frame).expect("plates are not images"),
+                time_s: img.time_s,
+                world_from_camera: img.world_from_camera,
+                intrinsics: img.intrinsics,
+                file: file(img),
+                mask: DatasetFile {
+                    logical_name: format!("gt/masks/m_{}_{}.png", img.view, img.frame),
+                    path: gt_mask_path(&scene.root, img.view, img.frame),
+                },
+            })
+            .collect(),
+        plates: scene.plates.iter().map(|(v, p)| (*v, file(p))).collect(),
+        camera_files: vec![DatasetFile {
+            logical_name: "all_data.json".into(),
+            path: camera_file.to_path_buf(),
+        }],
+    }
+}
+
 /// `data/r_<cam>_<frame>.png` → (cam, frame).
 fn parse_name(name: &str) -> Option<(u16, i32)> {
     let file = name.rsplit('/').next()?;
@@ -212,7 +255,10 @@ fn parse_name(name: &str) -> Option<(u16, i32)> {
     Some((cam.parse().ok()?, frame.parse().ok()?))
 }
 
-fn convert_c2w(m: &[Vec<f64>]) -> Result<[f64; 12], String> {
+/// A 3×4 or 4×4 camera-to-world matrix in OpenGL axes (finite, orthonormal rotation, last row
+/// `[0, 0, 0, 1]` when 4×4) as a row-major 3×4 `world_from_camera` in OpenCV axes; the error
+/// says what is wrong with it.
+pub(crate) fn convert_c2w(m: &[Vec<f64>]) -> Result<[f64; 12], String> {
     let rows = m.len();
     if !(rows == 3 || rows == 4) || m.iter().any(|r| r.len() != 4) {
         return Err(format!(

@@ -53,8 +53,20 @@ impl Preset {
 pub enum DatasetKind {
     /// PAC-NeRF: `all_data.json` + `data/r_<cam>_<frame>.png` (ARCHITECTURE §6).
     Pacnerf,
-    /// PhysDreamer: trained 3DGS + videos (not ingested yet).
+    /// PhysDreamer: a trained 3DGS `point_cloud.ply`, the points selecting the object and its
+    /// moving part, `transforms_train.json` (or COLMAP `sparse/0`) and a PNG video per camera
+    /// (`crate::io::physdreamer`).
     Physdreamer,
+}
+
+impl DatasetKind {
+    /// The name in `scene.dataset`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Pacnerf => "pacnerf",
+            Self::Physdreamer => "physdreamer",
+        }
+    }
 }
 
 /// The object's material family; picks the one constitutive model that runs.

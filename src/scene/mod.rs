@@ -6,6 +6,7 @@ pub mod frames;
 pub mod gaussians;
 pub mod metrics;
 pub mod neighbors;
+pub mod parts;
 pub mod splat;
 pub mod table;
 pub mod targets;

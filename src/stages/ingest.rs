@@ -1,5 +1,16 @@
-//! Stage `ingest`: read a PAC-NeRF capture, matte the object out of every image against its
-//! camera's background plate, and write masks, white-composited images and `frames.arrow`.
+//! Stage `ingest`: read a capture, matte the object out of every image against its camera's
+//! background plate (or take the dataset's masks), and write masks, white-composited images
+//! and `frames.arrow`.
+//!
+//! Layouts (`scene.dataset`): PAC-NeRF ([`pacnerf`]) and PhysDreamer ([`physdreamer`]), both
+//! read into one [`Capture`] that the rest of the stage works on. A PhysDreamer scene has no
+//! background plates (its trained Gaussians hold the background themselves): its masks are the
+//! dataset's (`matte: gt`) or the whole image (`none`), its frames have no plate, and the
+//! stages that composite over a plate use a uniform colour instead (the edit's `background`;
+//! `warmup` asks for `background: white | random`). It also
+//! carries trained Gaussians: they are written to `gaussians.arrow` with `simulated` true
+//! exactly for the moving part ([`crate::scene::parts`]), which `init {source: dataset}`
+//! takes as the canonical Gaussians.
 //!
 //! All cameras of a frame are matted together (`pipe_matte::matte_frame`): a shadow lies on the
 //! ground and darkens it for every camera, and the object is where the cameras agree in 3D.
@@ -7,6 +18,8 @@
 //! the other cameras' visual hull) is recorded in `metrics.arrow`, and masks that disagree are
 //! named in a warning, ground truth or not. When the dataset ships ground-truth masks
 //! (`gt/masks/m_<cam>_<frame>.png`), the mask IoU of every image is recorded too (`mask_iou`).
+
+pub mod trained;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -16,9 +29,10 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
+use crate::io::capture::{Capture, CaptureImage, DatasetFile};
 use crate::io::image::{self, Rgb8};
-use crate::io::pacnerf::{self, PacnerfImage, PacnerfScene};
-use crate::io::resample;
+use crate::io::physdreamer::{self, PhysdreamerScene};
+use crate::io::{pacnerf, ply, resample};
 use crate::pipeline::spec::{DatasetKind, Preset, SceneSpec};
 use crate::pipeline::stage::{
     InputFile, MetricRow, ParamError, StageContext, StageError, TypedStage,
@@ -33,7 +47,8 @@ use crate::scene::table::{self, Table};
 pub enum MatteMode {
     /// Background subtraction against `r_<cam>_-1.png`, robust to the object's shadow.
     Plate,
-    /// Use the dataset's ground-truth masks (`gt/masks/`), for ablations.
+    /// Use the dataset's own masks: PAC-NeRF's ground truth (`gt/masks/`, for ablations),
+    /// PhysDreamer's `masks/<view>/<frame>.png`.
     Gt,
     /// No matting: the whole image is the object.
     None,
@@ -78,6 +93,12 @@ pub enum IngestError {
     /// The dataset JSON is invalid.
     #[error(transparent)]
     Dataset(#[from] pacnerf::PacnerfError),
+    /// The PhysDreamer layout is invalid.
+    #[error(transparent)]
+    Physdreamer(#[from] physdreamer::PhysdreamerError),
+    /// A PLY of the dataset is invalid.
+    #[error(transparent)]
+    Ply(#[from] ply::PlyError),
     /// An image could not be read or written.
     #[error(transparent)]
     Image(#[from] image::ImageError),
@@ -105,7 +126,7 @@ impl TypedStage for Ingest {
     type Params = IngestParams;
     const KIND: &'static str = "ingest";
     const VERSION: u32 = 4;
-    const DESCRIPTION: &'static str = "Read a PAC-NeRF capture, matte the object against each camera's background plate, write masks, composited images, the plates and frames.arrow";
+    const DESCRIPTION: &'static str = "Read a PAC-NeRF or PhysDreamer capture, matte the object against each camera's background plate (or take the dataset's masks), write masks, composited images, the plates and frames.arrow (and a PhysDreamer scene's trained Gaussians, the moving part simulated)";
 
     fn output_schemas(&self) -> Vec<(&'static str, u32)> {
         vec![(Frames::NAME, Frames::VERSION)]
@@ -145,37 +166,45 @@ impl TypedStage for Ingest {
     }
 
     fn inputs(&self, p: &IngestParams, scene: &SceneSpec) -> Result<Vec<InputFile>, StageError> {
-        let ds = open(scene)?;
-        let mut out = vec![InputFile {
-            logical_name: "all_data.json".into(),
-            path: scene.path.join("all_data.json"),
-        }];
-        for img in selected(&ds, p).into_iter().chain(ds.plates.values()) {
-            out.push(InputFile {
-                logical_name: img.logical_name.clone(),
-                path: img.path.clone(),
-            });
-        }
-        for img in selected(&ds, p) {
-            let gt = gt_mask_path(&scene.path, img);
-            if gt.exists() {
-                out.push(InputFile {
-                    logical_name: format!("gt/masks/m_{}_{}.png", img.view, img.frame),
-                    path: gt,
-                });
-            }
+        let (ds, trained) = open(scene)?;
+        let input = |f: &DatasetFile| InputFile {
+            logical_name: f.logical_name.clone(),
+            path: f.path.clone(),
+        };
+        let mut out: Vec<InputFile> = ds.camera_files.iter().map(input).collect();
+        let images = selected(&ds, p);
+        out.extend(
+            images
+                .iter()
+                .map(|i| &i.file)
+                .chain(ds.plates.values())
+                .map(input),
+        );
+        out.extend(
+            images
+                .iter()
+                .filter(|i| i.mask.path.exists())
+                .map(|i| input(&i.mask)),
+        );
+        if let Some(t) = &trained {
+            out.extend(
+                std::iter::once(&t.point_cloud)
+                    .chain(&t.clean_object)
+                    .chain(&t.moving_part)
+                    .map(input),
+            );
         }
         Ok(out)
     }
 
     fn run(&self, p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
         let scene = ctx.scene;
-        let ds = open(scene)?;
+        let (ds, trained) = open(scene)?;
         let views: BTreeSet<u16> = ds.images.iter().map(|i| i.view).collect();
         if let Some(v) = scene.test_views.iter().find(|v| !views.contains(v)) {
             return Err(StageError::failed(IngestError::Invalid(format!(
                 "scene.test_views: camera {v} is not in {} (cameras: {})",
-                scene.path.join("all_data.json").display(),
+                ds.camera_files[0].path.display(),
                 views
                     .iter()
                     .map(u16::to_string)
@@ -195,7 +224,16 @@ impl TypedStage for Ingest {
         std::fs::create_dir_all(ctx.out_dir.join("masks")).map_err(StageError::failed)?;
         std::fs::create_dir_all(ctx.out_dir.join("plates")).map_err(StageError::failed)?;
 
-        // Plates first: they fix each camera's image size.
+        if p.matte == MatteMode::Plate && ds.plates.is_empty() {
+            return Err(StageError::failed(IngestError::Invalid(format!(
+                "stages.ingest.matte: `plate` mattes against background plates, and the {} \
+                 layout of {} has none: use `gt` (the dataset's masks) or `none` (the whole \
+                 image is the object)",
+                scene.dataset.name(),
+                scene.path.display()
+            ))));
+        }
+        // Plates first: they fix each camera's image size (else the first image does).
         let plates: Vec<(u16, Rgb8)> = ds
             .plates
             .iter()
@@ -203,7 +241,13 @@ impl TypedStage for Ingest {
             .map(|(v, img)| image::read_rgb8(&img.path).map(|r| (*v, r)))
             .collect::<Result<_, _>>()
             .map_err(|e| StageError::failed(IngestError::from(e)))?;
-        let (w0, h0) = (plates[0].1.width, plates[0].1.height);
+        let full = match plates.first() {
+            Some((_, pl)) => (pl.width, pl.height),
+            None => image::read_rgb8(&images[0].file.path)
+                .map(|r| (r.width, r.height))
+                .map_err(|e| StageError::failed(IngestError::from(e)))?,
+        };
+        let (w0, h0) = full;
         for (v, pl) in &plates {
             if (pl.width, pl.height) != (w0, h0) {
                 return Err(StageError::failed(IngestError::Invalid(format!(
@@ -215,7 +259,6 @@ impl TypedStage for Ingest {
                 ))));
             }
         }
-        let full = (w0, h0);
         let (w2, h2) = resample::scaled_size(w0, h0, p.scale);
         let plates: Vec<(u16, Rgb8)> = plates
             .into_iter()
@@ -234,7 +277,7 @@ impl TypedStage for Ingest {
 
         ctx.progress.start("matte", images.len() as u64);
         let out_dir = ctx.out_dir.to_path_buf();
-        let mut by_frame: BTreeMap<i32, Vec<&PacnerfImage>> = BTreeMap::new();
+        let mut by_frame: BTreeMap<u16, Vec<&CaptureImage>> = BTreeMap::new();
         for img in &images {
             by_frame.entry(img.frame).or_default().push(img);
         }
@@ -244,8 +287,19 @@ impl TypedStage for Ingest {
         let mut warnings = Vec::new();
         for frame_images in by_frame.values() {
             ctx.check_interrupted()?;
-            let done = ingest_frame(frame_images, &plates, full, p, scene, &out_dir)
-                .map_err(StageError::failed)?;
+            let source = match plates.is_empty() {
+                true => SizeSource::Image(&images[0].file.path),
+                false => SizeSource::Plates,
+            };
+            let done = ingest_frame(
+                frame_images,
+                &plates,
+                ((full, source), (w2, h2)),
+                p,
+                scene,
+                &out_dir,
+            )
+            .map_err(StageError::failed)?;
             ctx.progress.inc(frame_images.len() as u64);
             for d in done {
                 let (view, frame) = (Some(d.row.view), Some(d.row.frame));
@@ -286,7 +340,11 @@ impl TypedStage for Ingest {
             let mean = ious.iter().sum::<f64>() / ious.len() as f64;
             let min = ious.iter().cloned().fold(f64::INFINITY, f64::min);
             ctx.progress.log(&format!(
-                "mask IoU against gt/masks: mean {mean:.4}, min {min:.4} over {} images",
+                "mask IoU against {}: mean {mean:.4}, min {min:.4} over {} images",
+                match scene.dataset {
+                    DatasetKind::Pacnerf => "gt/masks",
+                    DatasetKind::Physdreamer => "masks/",
+                },
                 ious.len()
             ));
         }
@@ -311,26 +369,54 @@ impl TypedStage for Ingest {
         ));
         table::write(&ctx.out_dir.join("frames.arrow"), &Frames { rows })
             .map_err(StageError::failed)?;
+        if let Some(t) = &trained {
+            if !t.skipped.is_empty() {
+                ctx.progress.warn(&format!(
+                    "{}: {} camera(s) of {} have no video folder videos/<name>/ and are skipped: {}",
+                    scene.path.display(),
+                    t.skipped.len(),
+                    t.capture.camera_files[0].logical_name,
+                    t.skipped.join(", ")
+                ));
+            }
+            if !t.fps_given {
+                ctx.progress.log(&format!(
+                    "{} gives no `fps`: frames {:.4} s apart ({} frames/s assumed)",
+                    t.capture.camera_files[0].logical_name,
+                    1.0 / t.fps,
+                    t.fps
+                ));
+            }
+            trained::write(t, ctx)?;
+        }
         Ok(())
     }
 }
 
-fn open(scene: &SceneSpec) -> Result<PacnerfScene, StageError> {
-    if scene.dataset != DatasetKind::Pacnerf {
-        return Err(StageError::failed(IngestError::Invalid(format!(
-            "scene.dataset: ingest reads the `pacnerf` layout; `{:?}` is not supported yet",
-            scene.dataset
-        ))));
+/// The scene's capture, and for a PhysDreamer scene its trained Gaussians' files.
+fn open(scene: &SceneSpec) -> Result<(Capture, Option<PhysdreamerScene>), StageError> {
+    let failed = |e: IngestError| StageError::failed(e);
+    match scene.dataset {
+        DatasetKind::Pacnerf => {
+            let ds = pacnerf::read_scene(&scene.path).map_err(|e| failed(e.into()))?;
+            Ok((
+                pacnerf::capture(&ds, &scene.path.join("all_data.json")),
+                None,
+            ))
+        }
+        DatasetKind::Physdreamer => {
+            let ds = physdreamer::read_scene(&scene.path).map_err(|e| failed(e.into()))?;
+            Ok((ds.capture.clone(), Some(ds)))
+        }
     }
-    pacnerf::read_scene(&scene.path).map_err(|e| StageError::failed(IngestError::from(e)))
 }
 
-fn selected<'a>(ds: &'a PacnerfScene, p: &IngestParams) -> Vec<&'a PacnerfImage> {
+fn selected<'a>(ds: &'a Capture, p: &IngestParams) -> Vec<&'a CaptureImage> {
     ds.images
         .iter()
         .filter(|i| match &p.frames {
             None => true,
-            Some(f) => f.iter().any(|f| i32::from(*f) == i.frame),
+            Some(f) => f.contains(&i.frame),
         })
         .collect()
 }
@@ -338,10 +424,6 @@ fn selected<'a>(ds: &'a PacnerfScene, p: &IngestParams) -> Vec<&'a PacnerfImage>
 /// Where a camera's background plate is copied, relative to the entry.
 fn plate_rel(view: u16) -> String {
     format!("plates/p_{view}.png")
-}
-
-fn gt_mask_path(root: &Path, img: &PacnerfImage) -> PathBuf {
-    pacnerf::gt_mask_path(root, img.view, img.frame)
 }
 
 /// Masks whose agreement with the other cameras (`pipe_matte::agreement`) is below this are
@@ -360,7 +442,7 @@ fn metric(view: Option<u16>, frame: Option<u16>, name: &str, value: f64) -> Metr
 
 /// One image read and checked against its plate and camera.
 struct Loaded<'a> {
-    img: &'a PacnerfImage,
+    img: &'a CaptureImage,
     rgb: Rgb8,
     /// The ground-truth mask binarised to 0/255, when the scene has one.
     gt: Option<Vec<u8>>,
@@ -377,36 +459,45 @@ struct Ingested {
     empty: bool,
 }
 
-/// Read one image, check it against the capture's size `full`, read its ground-truth mask if
-/// any, and resample both to its plate's (the ingested) size.
+/// What fixes the capture's image size: the plates, or (without plates) its first image.
+#[derive(Debug, Clone, Copy)]
+enum SizeSource<'a> {
+    Plates,
+    Image(&'a Path),
+}
+
+/// Read one image, check it against the capture's size `full` (and what set it), read the
+/// dataset's mask of it if any, and resample both to the ingested size `small`.
 fn load<'a>(
-    img: &'a PacnerfImage,
-    plate: &Rgb8,
-    full: (u32, u32),
-    root: &Path,
+    img: &'a CaptureImage,
+    full: ((u32, u32), SizeSource<'_>),
+    small: (u32, u32),
 ) -> Result<Loaded<'a>, IngestError> {
-    let rgb = image::read_rgb8(&img.path)?;
+    let rgb = image::read_rgb8(&img.file.path)?;
     let (w, h) = (rgb.width, rgb.height);
-    if (w, h) != full {
+    if (w, h) != full.0 {
         return Err(IngestError::Invalid(format!(
-            "{}: image is {w}×{h}, but the plate of camera {} is {}×{}",
-            img.path.display(),
-            img.view,
-            full.0,
-            full.1
+            "{}: image is {w}×{h}, but {} is {}×{}",
+            img.file.path.display(),
+            match full.1 {
+                SizeSource::Plates => format!("the plate of camera {}", img.view),
+                SizeSource::Image(p) => p.display().to_string(),
+            },
+            full.0.0,
+            full.0.1
         )));
     }
     let [fx, fy, cx, cy] = img.intrinsics;
     if !(0.0..=f64::from(w)).contains(&cx) || !(0.0..=f64::from(h)).contains(&cy) {
         return Err(IngestError::Invalid(format!(
             "{}: principal point ({cx}, {cy}) lies outside the {w}×{h} image; are the intrinsics for another resolution?",
-            img.path.display()
+            img.file.path.display()
         )));
     }
-    let (w2, h2) = (plate.width, plate.height);
-    let gt_path = gt_mask_path(root, img);
+    let (w2, h2) = small;
+    let gt_path = &img.mask.path;
     let gt = if gt_path.exists() {
-        let (gw, gh, g) = image::read_gray8(&gt_path)?;
+        let (gw, gh, g) = image::read_gray8(gt_path)?;
         if (gw, gh) != (w, h) {
             return Err(IngestError::Invalid(format!(
                 "{}: mask is {gw}×{gh}, image is {w}×{h}",
@@ -448,11 +539,10 @@ fn frame_masks(
     loaded: &[Loaded<'_>],
     plates: &[(u16, Rgb8)],
     mode: MatteMode,
-    root: &Path,
 ) -> Result<FrameMasks, IngestError> {
     let size = |l: &Loaded<'_>| (l.rgb.width as usize, l.rgb.height as usize);
     let to_err = |l: &Loaded<'_>| {
-        let path = l.img.path.clone();
+        let path = l.img.file.path.clone();
         move |source| IngestError::Matte { path, source }
     };
     match mode {
@@ -470,7 +560,7 @@ fn frame_masks(
                 let gt = l.gt.clone().ok_or_else(|| {
                     IngestError::Invalid(format!(
                         "stages.ingest.matte is `gt` but {} does not exist",
-                        gt_mask_path(root, l.img).display()
+                        l.img.mask.path.display()
                     ))
                 })?;
                 let (w, h) = size(l);
@@ -517,32 +607,28 @@ fn frame_masks(
 
 /// Matte, composite and write the images of one frame (all cameras); their rows, IoUs
 /// against ground truth and agreements.
+///
+/// `sizes`: the capture's image size (and what set it) and the ingested one (pixels).
 fn ingest_frame(
-    images: &[&PacnerfImage],
+    images: &[&CaptureImage],
     plates: &[(u16, Rgb8)],
-    full: (u32, u32),
+    sizes: (((u32, u32), SizeSource<'_>), (u32, u32)),
     p: &IngestParams,
     scene: &SceneSpec,
     out_dir: &Path,
 ) -> Result<Vec<Ingested>, IngestError> {
-    let plate_of = |view: u16| {
-        &plates
-            .iter()
-            .find(|(v, _)| *v == view)
-            .expect("plate per view")
-            .1
-    };
     let loaded: Vec<Loaded<'_>> = images
         .par_iter()
-        .map(|img| load(img, plate_of(img.view), full, &scene.path))
+        .map(|img| load(img, sizes.0, sizes.1))
         .collect::<Result<_, _>>()?;
-    let (masks, agreement) = frame_masks(&loaded, plates, p.matte, &scene.path)?;
+    let (masks, agreement) = frame_masks(&loaded, plates, p.matte)?;
     loaded
         .par_iter()
         .zip(&masks)
         .enumerate()
         .map(|(i, (l, mask))| {
-            let row = write_outputs(l, mask, p, &scene.test_views, out_dir)?;
+            let plate = plates.iter().any(|(v, _)| *v == l.img.view);
+            let row = write_outputs(l, mask, p, (&scene.test_views, plate), out_dir)?;
             Ok(Ingested {
                 row,
                 iou: l.gt.as_ref().map(|g| iou(mask, g)),
@@ -554,11 +640,13 @@ fn ingest_frame(
 }
 
 /// Composite one image on the background and write it with its mask; its `frames` row.
+///
+/// `(test_views, plate)`: the held-out cameras, and whether this camera has a plate.
 fn write_outputs(
     l: &Loaded<'_>,
     mask: &[u8],
     p: &IngestParams,
-    test_views: &[u16],
+    (test_views, plate): (&[u16], bool),
     out_dir: &Path,
 ) -> Result<FrameRow, IngestError> {
     let (img, rgb) = (l.img, &l.rgb);
@@ -587,7 +675,7 @@ fn write_outputs(
     image::write_gray8(&out_dir.join(&mask_rel), w, h, mask)?;
     Ok(FrameRow {
         view: img.view,
-        frame: u16::try_from(img.frame).expect("plates are not frames"),
+        frame: img.frame,
         time_s: img.time_s,
         world_from_camera: img.world_from_camera,
         fx,
@@ -598,7 +686,7 @@ fn write_outputs(
         height: h,
         image: image_rel,
         mask: mask_rel,
-        plate: Some(plate_rel(img.view)),
+        plate: plate.then(|| plate_rel(img.view)),
         role: if test_views.contains(&img.view) {
             Role::Test
         } else {

@@ -9,6 +9,9 @@
 //! the scene's world frame (metres). Their points are used as they are (a seeded random subset
 //! when there are more than `points`), coloured from the file (grey when it has no colours),
 //! with isotropic scales at the distance to the nearest other point, as 3DGS initialises.
+//!
+//! `source: dataset`: a layout that ships trained Gaussians (PhysDreamer's `point_cloud.ply`)
+//! gives them as they are, with the moving part marked `simulated` by `ingest`.
 
 use std::path::PathBuf;
 
@@ -44,6 +47,10 @@ pub enum InitSource {
     /// A COLMAP sparse model folder (`cameras`, `images`, `points3D` as .bin or .txt) named by
     /// `path`.
     Colmap,
+    /// The dataset's trained Gaussians as they are (`scene.dataset: physdreamer`:
+    /// `point_cloud.ply`, the moving part marked `simulated` by `ingest`); `points`,
+    /// `sh_degree`, `opacity` and `seed` do not apply.
+    Dataset,
 }
 
 /// Parameters of `init`.
@@ -158,7 +165,7 @@ impl TypedStage for Init {
             return bad("grid", format!("must be in 8..=1024, found {}", p.grid));
         }
         match (p.source, &p.path) {
-            (InitSource::VisualHull, Some(_)) => bad(
+            (InitSource::VisualHull | InitSource::Dataset, Some(_)) => bad(
                 "path",
                 "is only used with `source: ply` or `source: colmap`".into(),
             ),
@@ -177,7 +184,7 @@ impl TypedStage for Init {
         let full = scene.path.join(path);
         let missing = |what: String| StageError::failed(InitError::Invalid(what));
         match p.source {
-            InitSource::VisualHull => Ok(Vec::new()),
+            InitSource::VisualHull | InitSource::Dataset => Ok(Vec::new()),
             InitSource::Ply => {
                 if !full.is_file() {
                     return Err(missing(format!(
@@ -212,8 +219,10 @@ impl TypedStage for Init {
     }
 
     fn run(&self, p: &InitParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
-        if p.source != InitSource::VisualHull {
-            return from_points(p, ctx);
+        match p.source {
+            InitSource::VisualHull => {}
+            InitSource::Dataset => return from_dataset(ctx),
+            InitSource::Ply | InitSource::Colmap => return from_points(p, ctx),
         }
         let ingest = ctx.upstream("ingest")?.dir.clone();
         let frames: Frames =
@@ -345,7 +354,7 @@ fn from_points(p: &InitParams, ctx: &mut StageContext<'_>) -> Result<(), StageEr
                 ),
             )
         }
-        InitSource::VisualHull => unreachable!("handled by the caller"),
+        InitSource::VisualHull | InitSource::Dataset => unreachable!("handled by the caller"),
     };
     if positions.is_empty() {
         return Err(StageError::failed(InitError::Invalid(format!(
@@ -406,6 +415,37 @@ fn from_points(p: &InitParams, ctx: &mut StageContext<'_>) -> Result<(), StageEr
         frame: None,
         metric: "gaussians".into(),
         value: n as f64,
+    });
+    Ok(())
+}
+
+/// The trained Gaussians `ingest` read from the dataset, as they are.
+fn from_dataset(ctx: &mut StageContext<'_>) -> Result<(), StageError> {
+    let ingest = ctx.upstream("ingest")?.dir.clone();
+    let path = ingest.join(crate::stages::ingest::trained::GAUSSIANS);
+    if !path.is_file() {
+        return Err(StageError::failed(InitError::Invalid(format!(
+            "stages.init.source: `dataset` takes the dataset's trained Gaussians, and the `{}` \
+             layout has none (only `physdreamer` has: point_cloud.ply); use `visual_hull`, \
+             `ply` or `colmap`",
+            ctx.scene.dataset.name()
+        ))));
+    }
+    let g: Gaussians = table::read(&path).map_err(StageError::failed)?;
+    table::write(&ctx.out_dir.join("gaussians.arrow"), &g).map_err(StageError::failed)?;
+    let moving = g.simulated.iter().filter(|s| **s).count();
+    ctx.progress.log(&format!(
+        "{} trained Gaussians of the dataset (SH degree {}), {moving} simulated, {} held in place",
+        g.len(),
+        g.sh_degree,
+        g.len() - moving
+    ));
+    ctx.metric(MetricRow {
+        epoch: None,
+        view: None,
+        frame: None,
+        metric: "gaussians".into(),
+        value: g.len() as f64,
     });
     Ok(())
 }

@@ -382,7 +382,7 @@ fn each_named_edit_is_a_stage_and_bad_values_name_the_file_line_and_value() {
         ]
     );
     let graph = pipe::pipeline::graph::Graph::build(&p, &pipe::stages::builtin()).unwrap();
-    assert_eq!(graph.upstream["edit.drop"], ["ingest", "warmup"]);
+    assert_eq!(graph.upstream["edit.drop"], ["ingest", "init", "warmup"]);
     // --set reaches one edit.
     let p = parse(&text, &["edit.drop.frames=30"]).unwrap();
     assert_eq!(p.stage("edit.drop").unwrap().params["frames"], 30);

@@ -331,4 +331,12 @@ fn init_source_and_path_must_agree() {
     assert!(e.contains("stages.init.path: is only used with"), "{e}");
     let e = run_init("{source: ply, path: nope.ply}").unwrap_err();
     assert!(e.contains("nope.ply is not a file"), "{e}");
+    let e = run_init("{source: dataset, path: x.ply}").unwrap_err();
+    assert!(e.contains("stages.init.path: is only used with"), "{e}");
+    // A PAC-NeRF scene has no trained Gaussians.
+    let e = run_init("{source: dataset}").unwrap_err();
+    assert!(
+        e.contains("stages.init.source: `dataset` takes the dataset's trained Gaussians, and the `pacnerf` layout has none"),
+        "{e}"
+    );
 }

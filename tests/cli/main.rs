@@ -6,6 +6,7 @@ mod edit;
 mod formats;
 mod ingest;
 mod init;
+mod physdreamer;
 mod physics;
 mod render;
 mod resume;

@@ -24,7 +24,7 @@
 //! counts (the MPM is deterministic for any thread count; the renderer is sequential).
 
 mod bar;
-mod cameras;
+pub(crate) mod cameras;
 mod deformation;
 mod render;
 mod simulate;
@@ -188,38 +188,7 @@ fn ring(args: &Args) -> Ring {
 /// leaves it as it found it.
 pub fn run(args: &Args) -> Result<()> {
     args.check()?;
-    let dst = &args.dst;
-    let existed = dst.exists();
-    if existed
-        && std::fs::read_dir(dst)
-            .with_context(|| format!("reading {}", dst.display()))?
-            .next()
-            .is_some()
-    {
-        bail!(
-            "{}: exists and is not empty; remove it or choose another folder",
-            dst.display()
-        );
-    }
-    let written = write_scene(args);
-    if written.is_err() {
-        // Only what this run made is removed: the folder was empty or absent.
-        let _ = if existed {
-            std::fs::read_dir(dst).map(|entries| {
-                for e in entries.flatten() {
-                    let p = e.path();
-                    let _ = if p.is_dir() {
-                        std::fs::remove_dir_all(&p)
-                    } else {
-                        std::fs::remove_file(&p)
-                    };
-                }
-            })
-        } else {
-            std::fs::remove_dir_all(dst)
-        };
-    }
-    written
+    crate::into_empty_folder(&args.dst, || write_scene(args))
 }
 
 /// [`run`] once `args.dst` is known to be free.

@@ -4,7 +4,8 @@
 //! `edit:` in a pipeline file maps names to edits; each is a stage `edit.<name>` with its own
 //! parameters ([`params::EditParams`]) and cache entry, so changing one edit re-runs only it,
 //! and all of them share the upstream entries. An edit reads the canonical Gaussians
-//! (`warmup`), the capture's cameras and frame interval (`ingest`) and, when the pipeline has
+//! (`warmup`'s, else `init`'s: a PhysDreamer scene's trained Gaussians need no warm-up), the
+//! capture's cameras and frame interval (`ingest`) and, when the pipeline has
 //! them, the learned material (`material`) and initial velocity (`velocity`, else
 //! `material.json`'s); without a `material` stage its `material:` block gives the material.
 //!
@@ -245,7 +246,7 @@ impl TypedStage for Edit {
     const KIND: &'static str = "edit";
     const VERSION: u32 = 2;
     const DESCRIPTION: &'static str = "Simulate new motion of the learned scene (forces, impulses, material, gravity and boundary changes) and render it as PNG frames, GIFs, MP4s and per-frame 3DGS PLYs";
-    const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity", "material"];
+    const UPSTREAM: &'static [&'static str] = &["ingest", "init", "warmup", "velocity", "material"];
     const NAMED_INSTANCES: bool = true;
 
     fn output_schemas(&self) -> Vec<(&'static str, u32)> {
@@ -309,15 +310,14 @@ fn read_scene(ctx: &StageContext<'_>) -> Result<Scene, EditError> {
     let ingest = ctx.upstream("ingest").map_err(|e| inputs(&e))?;
     let frames: Frames =
         crate::scene::table::read(&ingest.dir.join("frames.arrow")).map_err(|e| inputs(&e))?;
-    let gaussians: Gaussians = crate::scene::table::read(
-        &ctx.upstream("warmup")
-            .map_err(|e| inputs(&e))?
-            .dir
-            .join("gaussians.arrow"),
-    )
-    .map_err(|e| inputs(&e))?;
+    let (source, entry) = match ctx.upstream("warmup") {
+        Ok(w) => ("warmup", w),
+        Err(_) => ("init", ctx.upstream("init").map_err(|e| inputs(&e))?),
+    };
+    let gaussians: Gaussians =
+        crate::scene::table::read(&entry.dir.join("gaussians.arrow")).map_err(|e| inputs(&e))?;
     if gaussians.is_empty() {
-        return Err(inputs(&"warmup produced no Gaussians"));
+        return Err(inputs(&format!("{source} produced no Gaussians")));
     }
     let material = ctx.upstream("material").ok();
     let (learned, learned_field) = match material {
