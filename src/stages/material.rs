@@ -466,6 +466,7 @@ impl TypedStage for MaterialStage {
                 None => Ok(g),
             }
         };
+        let started = std::time::Instant::now();
         for epoch in first_epoch..p.epochs {
             ctx.check_interrupted()?;
             if converged {
@@ -614,6 +615,7 @@ impl TypedStage for MaterialStage {
         }
 
         let global = values_of(&u);
+        let global_s = started.elapsed().as_secs_f64();
         // The losses of a material, from a clean rollout.
         let eval = |values: &MaterialValues,
                     moduli: Option<&crate::physics::rollout::Moduli>,
@@ -718,6 +720,19 @@ impl TypedStage for MaterialStage {
                 }
             }
         };
+        // Wall time of each phase (s; the global one from this run's first epoch on).
+        for (metric, value) in [
+            ("wall_s_global", global_s),
+            ("wall_s_field", started.elapsed().as_secs_f64() - global_s),
+        ] {
+            ctx.metric(MetricRow {
+                epoch: None,
+                view: None,
+                frame: None,
+                metric: metric.into(),
+                value,
+            });
+        }
         let result = fitted
             .as_ref()
             .map_or_else(|| global.clone(), |f| f.values.clone());

@@ -382,12 +382,26 @@ impl BuiltinRun {
     /// Write `p.yaml`: `scene` (PAC-NeRF), `test_views` (YAML list), `preset`, and the
     /// `stages:` body (YAML lines indented by two spaces).
     pub fn new(scene: &Path, test_views: &str, preset: &str, stages: &str) -> Self {
+        Self::with_family(scene, test_views, None, preset, stages)
+    }
+
+    /// As [`BuiltinRun::new`], with `scene.material: family` when given.
+    pub fn with_family(
+        scene: &Path,
+        test_views: &str,
+        family: Option<&str>,
+        preset: &str,
+        stages: &str,
+    ) -> Self {
         let dir = tempfile::tempdir().unwrap();
         let file = dir.path().join("p.yaml");
+        let family = family
+            .map(|f| format!("  material: {f}\n"))
+            .unwrap_or_default();
         std::fs::write(
             &file,
             format!(
-                "name: t\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: {test_views}\npreset: {preset}\nstages:\n{stages}",
+                "name: t\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: {test_views}\n{family}preset: {preset}\nstages:\n{stages}",
                 scene.display()
             ),
         )
