@@ -8,7 +8,10 @@
 //!
 //! `--single` mattes each image alone ([`pipe_matte::matte`]) for comparison; `--dump DIR`
 //! writes each mask as `DIR/m_<cam>_<frame>.png`; `--set` overrides one `MultiViewParams`
-//! field (`ground_min_change`, `ground_lit_views`, `hull_grid`, `hull_max_misses`).
+//! field (`ground_min_change`, `ground_lit_views`, `photo_rounds`, `support_views`,
+//! `photo_tolerance`, `hull_grid`, `hull_max_misses`, and the graph cut's `cut_rounds`,
+//! `cut_smoothness`, `cut_evidence_cost`, `cut_shadow_cost`, `cut_agree_cost`, `cut_pull`,
+//! `witness_tolerance`, `witness_noise_factor`, `witness_min_disagree`, `witness_min_height`).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -91,6 +94,7 @@ fn run(
     let mut rows: Vec<(f64, usize, i64)> = Vec::new();
     let mut agreements: Vec<(f64, usize, i64)> = Vec::new();
     let mut gt_agreements: Vec<(f64, usize, i64)> = Vec::new();
+    let mut matte_seconds = 0.0;
     for (frame, list) in &frames {
         let images: Vec<(Vec<u8>, usize, usize)> = list
             .iter()
@@ -115,7 +119,9 @@ fn run(
                 .collect::<Result<_, _>>()?;
             (m, vec![f64::NAN; views.len()])
         } else {
+            let start = std::time::Instant::now();
             let r = matte_frame(&views, params).map_err(|e| e.to_string())?;
+            matte_seconds += start.elapsed().as_secs_f64();
             (r.masks, r.agreement)
         };
         let gts: Vec<Mask> = list
@@ -170,6 +176,11 @@ fn run(
     println!("  worst IoU: {}", fmt(&rows));
     println!("  mean IoU per frame: {}", per_frame.join(", "));
     if !single {
+        println!(
+            "  matte_frame: {:.3} s per frame ({} frames)",
+            matte_seconds / frames.len().max(1) as f64,
+            frames.len()
+        );
         let amean = agreements.iter().map(|r| r.0).sum::<f64>() / agreements.len().max(1) as f64;
         println!("  agreement mean {amean:.4}; lowest: {}", fmt(&agreements));
     }
@@ -192,6 +203,16 @@ fn set(params: &mut MultiViewParams, kv: &str) -> Result<(), String> {
         "photo_tolerance" => params.photo_tolerance = v.parse().map_err(|e| bad(&e))?,
         "hull_grid" => params.hull_grid = v.parse().map_err(|e| bad(&e))?,
         "hull_max_misses" => params.hull_max_misses = v.parse().map_err(|e| bad(&e))?,
+        "cut_rounds" => params.cut_rounds = v.parse().map_err(|e| bad(&e))?,
+        "cut_smoothness" => params.cut_smoothness = v.parse().map_err(|e| bad(&e))?,
+        "cut_evidence_cost" => params.cut_evidence_cost = v.parse().map_err(|e| bad(&e))?,
+        "cut_shadow_cost" => params.cut_shadow_cost = v.parse().map_err(|e| bad(&e))?,
+        "cut_agree_cost" => params.cut_agree_cost = v.parse().map_err(|e| bad(&e))?,
+        "cut_pull" => params.cut_pull = v.parse().map_err(|e| bad(&e))?,
+        "witness_tolerance" => params.witness_tolerance = v.parse().map_err(|e| bad(&e))?,
+        "witness_noise_factor" => params.witness_noise_factor = v.parse().map_err(|e| bad(&e))?,
+        "witness_min_disagree" => params.witness_min_disagree = v.parse().map_err(|e| bad(&e))?,
+        "witness_min_height" => params.witness_min_height = v.parse().map_err(|e| bad(&e))?,
         _ => return Err(format!("unknown field {k:?}")),
     }
     Ok(())

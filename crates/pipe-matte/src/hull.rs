@@ -116,6 +116,30 @@ impl Hull {
         None
     }
 
+    /// Whether the segment from `from` to `to` meets a kept voxel short of its last `margin`
+    /// metres (sampled every half voxel inside the box).
+    pub fn blocks(&self, from: DVec3, to: DVec3, margin: f64) -> bool {
+        let len = (to - from).length();
+        if len <= margin {
+            return false;
+        }
+        let d = (to - from) / len;
+        let Some((t0, t1)) = slab(from, d, self.box_min, self.box_max) else {
+            return false;
+        };
+        let end = t1.min(len - margin);
+        let step = self.voxel / 2.0;
+        // The same samples as a march from `from`: t = step, 2 step, ...
+        let mut t = ((t0 / step).floor().max(1.0)) * step;
+        while t < end {
+            if self.contains(from + d * t) {
+                return true;
+            }
+            t += step;
+        }
+        false
+    }
+
     /// The hull's silhouette in `camera`: per pixel (row-major), whether the centre of a
     /// kept voxel projects into it, the same test carving applies (a voxel is about a pixel
     /// across at the default resolutions, so the projected centres leave no gaps inside).
@@ -280,5 +304,32 @@ pub fn votes(views: &[MaskedView<'_>], resolution: usize, max_misses: usize) -> 
             let grow = DVec3::splat(2.0 * coarse.voxel);
             Votes::in_box(clo - grow, chi + grow, resolution, views)
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_segment_through_a_kept_voxel_is_blocked_short_of_its_end_only() {
+        // A 3×3×3 box of 0.1 m voxels with only the centre voxel kept.
+        let mut occupied = vec![false; 27];
+        occupied[13] = true;
+        let hull = Hull::from_occupancy(DVec3::ZERO, 0.1, UVec3::splat(3), occupied);
+        let from = DVec3::new(-1.0, 0.15, 0.15);
+        assert!(hull.blocks(from, DVec3::new(1.0, 0.15, 0.15), 0.0));
+        // Ending inside the kept voxel: blocked without a margin, not with one.
+        let to = DVec3::new(0.15, 0.15, 0.15);
+        assert!(hull.blocks(from, to, 0.0));
+        assert!(!hull.blocks(from, to, 0.1));
+        // Passing beside it.
+        assert!(!hull.blocks(from, DVec3::new(1.0, 0.25, 0.15), 0.0));
+        // Starting past it.
+        assert!(!hull.blocks(
+            DVec3::new(0.25, 0.15, 0.15),
+            DVec3::new(1.0, 0.15, 0.15),
+            0.0
+        ));
     }
 }

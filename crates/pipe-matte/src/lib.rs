@@ -25,14 +25,18 @@
 
 mod camera;
 mod components;
+mod cut;
 mod error;
 pub mod hull;
 mod mask;
+mod maxflow;
 pub(crate) mod morphology;
 mod multiview;
 mod params;
+mod refine;
 mod score;
 mod view;
+mod witness;
 
 pub use camera::Pinhole;
 pub use error::MatteError;

@@ -71,6 +71,30 @@ pub struct MultiViewParams {
     pub hull_grid: usize,
     /// Views a voxel of the agreement hull (of the other views than the one scored) may miss.
     pub hull_max_misses: usize,
+    /// Rounds of the graph-cut refinement (`refine.rs`); 0 skips it.
+    pub cut_rounds: usize,
+    /// Weight λ of the cut's contrast-sensitive smoothness term (cost units per pixel of
+    /// outline across a flat region).
+    pub cut_smoothness: f32,
+    /// Cost of labelling a proven object pixel background, or an unchanged pixel object.
+    pub cut_evidence_cost: f32,
+    /// Cost of labelling a shadow-like pixel object when nothing else is known of it.
+    pub cut_shadow_cost: f32,
+    /// Added to that cost when a view sees its ground point dimmed the same way.
+    pub cut_agree_cost: f32,
+    /// Taken off that cost when `witness_min_disagree` views, and none agreeing, see its
+    /// ground point dimmed otherwise, and its ray meets the other views' hull high enough.
+    pub cut_pull: f32,
+    /// Largest mean difference of log-dimming over a 3×3 block that agrees (`witness.rs`).
+    pub witness_tolerance: f32,
+    /// The tolerance grows by this many times the witness's own mean absolute deviation of
+    /// log-dimming over the block: noise in a dark shadow is no disagreement.
+    pub witness_noise_factor: f32,
+    /// Disagreeing unoccluded views a pull needs.
+    pub witness_min_disagree: usize,
+    /// A pull also needs the pixel's ray to meet the hull of the other views' changed pixels
+    /// this many voxels above the ground (a contact shadow's ray meets it lower).
+    pub witness_min_height: f64,
 }
 
 impl Default for MultiViewParams {
@@ -84,6 +108,16 @@ impl Default for MultiViewParams {
             photo_tolerance: 8,
             hull_grid: 64,
             hull_max_misses: 0,
+            cut_rounds: 2,
+            cut_smoothness: 0.8,
+            cut_evidence_cost: 2.0,
+            cut_shadow_cost: 5.0,
+            cut_agree_cost: 2.0,
+            cut_pull: 5.25,
+            witness_tolerance: 0.1,
+            witness_noise_factor: 0.5,
+            witness_min_disagree: 3,
+            witness_min_height: 3.0,
         }
     }
 }
