@@ -125,7 +125,7 @@ pub struct Ingest;
 impl TypedStage for Ingest {
     type Params = IngestParams;
     const KIND: &'static str = "ingest";
-    const VERSION: u32 = 4;
+    const VERSION: u32 = 5;
     const DESCRIPTION: &'static str = "Read a PAC-NeRF or PhysDreamer capture, matte the object against each camera's background plate (or take the dataset's masks), write masks, composited images, the plates and frames.arrow (and a PhysDreamer scene's trained Gaussians, the moving part simulated)";
 
     fn output_schemas(&self) -> Vec<(&'static str, u32)> {

@@ -655,6 +655,17 @@ impl TypedStage for MaterialStage {
                     .copied()
                     .filter(|v| !held.contains(v))
                     .collect();
+                // The field sees the fit views' frames 1..=fit_last; everything else decides.
+                let fit_last = last.saturating_sub(p.auto.held_out_frames);
+                if fit_last == 0 {
+                    return Err(StageError::failed(FitError::Invalid(format!(
+                        "stages.{}.auto.held_out_frames = {} leaves no frame of 1..={last} to fit the field on",
+                        ctx.name, p.auto.held_out_frames
+                    ))));
+                }
+                let fitted_on = |t: &&crate::scene::targets::Target| {
+                    !held.contains(&t.row.view) && t.row.frame <= fit_last
+                };
                 let mut selection = ModelSelection {
                     kept: "global".into(),
                     reason: String::new(),
@@ -663,6 +674,7 @@ impl TypedStage for MaterialStage {
                     loss_global_held_out: None,
                     loss_field_held_out: None,
                     margin: p.auto.margin,
+                    fit_frames_last: fit_last,
                 };
                 match field_applies {
                     Err(e) => {
@@ -673,26 +685,26 @@ impl TypedStage for MaterialStage {
                         let mut held_loss = ViewsLoss::new(
                             &object,
                             is_fluid(family),
-                            targets.iter().filter(|t| held.contains(&t.row.view)),
+                            targets.iter().filter(|t| !fitted_on(t)),
                             weights,
                             inputs.background,
                         );
                         let mut fit_loss = ViewsLoss::new(
                             &object,
                             is_fluid(family),
-                            targets.iter().filter(|t| !held.contains(&t.row.view)),
+                            targets.iter().filter(fitted_on),
                             weights,
                             inputs.background,
                         );
                         ctx.progress.log(&format!(
-                            "material auto: the field is fitted on views {fit_views:?} and compared with the global fit on views {held:?}"
+                            "material auto: the field is fitted on views {fit_views:?} of frames 1..={fit_last} and compared with the global fit on the rest (views {held:?}, and frames after {fit_last})"
                         ));
                         let f = crate::stages::material_field::fit(
                             p,
                             ctx,
                             &object,
                             &v0,
-                            last,
+                            fit_last,
                             &mut fit_loss,
                             &global,
                             &learned,

@@ -23,6 +23,11 @@ pub struct AutoSettings {
     /// The field is kept when its held-out loss is below `(1 − margin)` × the global model's.
     #[serde(default = "margin")]
     pub margin: f64,
+    /// The last frames held out as well (of every view): the field is fitted on the fit views'
+    /// earlier frames and scored on what it did not see, later frames included, which tests
+    /// that it predicts the motion rather than fits it (default 0: views only).
+    #[serde(default)]
+    pub held_out_frames: u16,
 }
 
 fn margin() -> f64 {
@@ -34,6 +39,7 @@ impl Default for AutoSettings {
         Self {
             held_out_views: None,
             margin: margin(),
+            held_out_frames: 0,
         }
     }
 }
@@ -54,6 +60,9 @@ pub struct ModelSelection {
     pub loss_field_held_out: Option<f64>,
     /// The relative margin the field had to win by.
     pub margin: f64,
+    /// The field was fitted on frames `1..=fit_frames_last` (the later ones held out).
+    #[serde(default)]
+    pub fit_frames_last: u16,
 }
 
 /// The held-out views among `train` (sorted, distinct): `asked`, checked, or every fourth from

@@ -581,6 +581,7 @@ impl TypedStage for Velocity {
                     loss_global_held_out: Some(lg),
                     loss_field_held_out: Some(lf),
                     margin: p.auto.margin,
+                    fit_frames_last: last,
                 };
                 (wins.then_some(f), Some(selection))
             }
