@@ -238,7 +238,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 6;
+    const VERSION: u32 = 7;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 
@@ -656,11 +656,12 @@ impl TypedStage for MaterialStage {
                     .filter(|v| !held.contains(v))
                     .collect();
                 // The field sees the fit views' frames 1..=fit_last; everything else decides.
-                let fit_last = last.saturating_sub(p.auto.held_out_frames);
+                let held_frames = p.auto.held_out_frames(last);
+                let fit_last = last.saturating_sub(held_frames);
                 if fit_last == 0 {
                     return Err(StageError::failed(FitError::Invalid(format!(
-                        "stages.{}.auto.held_out_frames = {} leaves no frame of 1..={last} to fit the field on",
-                        ctx.name, p.auto.held_out_frames
+                        "stages.{}.auto.held_out_frames = {held_frames} leaves no frame of 1..={last} to fit the field on",
+                        ctx.name
                     ))));
                 }
                 let fitted_on = |t: &&crate::scene::targets::Target| {

@@ -25,9 +25,18 @@ pub struct AutoSettings {
     pub margin: f64,
     /// The last frames held out as well (of every view): the field is fitted on the fit views'
     /// earlier frames and scored on what it did not see, later frames included, which tests
-    /// that it predicts the motion rather than fits it (default 0: views only).
+    /// that it predicts the motion rather than fits it (default: a quarter of the frames,
+    /// rounded up; 0 holds out views only).
     #[serde(default)]
-    pub held_out_frames: u16,
+    pub held_out_frames: Option<u16>,
+}
+
+impl AutoSettings {
+    /// The frames held out of `1..=last`.
+    pub fn held_out_frames(&self, last: u16) -> u16 {
+        self.held_out_frames
+            .unwrap_or(if last >= 2 { last.div_ceil(4) } else { 0 })
+    }
 }
 
 fn margin() -> f64 {
@@ -39,7 +48,7 @@ impl Default for AutoSettings {
         Self {
             held_out_views: None,
             margin: margin(),
-            held_out_frames: 0,
+            held_out_frames: None,
         }
     }
 }
@@ -134,6 +143,19 @@ mod tests {
         assert!(err.contains("leaves no training view"), "{err}");
         let err = held_out_views(&[3], None).unwrap_err();
         assert!(err.contains("1 training view"), "{err}");
+    }
+
+    #[test]
+    fn a_quarter_of_the_frames_is_held_out_by_default() {
+        let a = AutoSettings::default();
+        assert_eq!(a.held_out_frames(9), 3);
+        assert_eq!(a.held_out_frames(13), 4);
+        assert_eq!(a.held_out_frames(1), 0);
+        let none = AutoSettings {
+            held_out_frames: Some(0),
+            ..AutoSettings::default()
+        };
+        assert_eq!(none.held_out_frames(13), 0);
     }
 
     #[test]

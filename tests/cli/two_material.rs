@@ -77,14 +77,14 @@ fn two_material_scene_ingests_with_masks_matching_the_renderers_coverage() {
 }
 
 /// Issue 23's check on the generated bar (halves E 2e4 / 6e5 Pa), `draft`: `model: auto` fits
-/// the global model (one E: the soft half's, 2.02e4 Pa), then a field on eight of the ten
-/// training views, and keeps the field because it lowers the loss on the two held-out views
-/// (measured 0.698 → 0.290). The field makes the re-simulation far closer to the capture
-/// (measured test PSNR 31.11 dB against the global model's 27.42, Chamfer at the last frame
-/// 10.1 mm against 27.1) and puts the soft half below the stiff one (per-half medians 7.2e4
-/// and 1.8e5 Pa, 0.40 decades apart). Not asserted, because not met: the medians within 0.15
-/// decades of each half's truth (measured 0.56 and 0.52 off: the field explains the bending
-/// with a thin, much softer layer low in the soft half; see `field_E.ply`). About 5 min.
+/// the global model (one E: the soft half's), then a field on eight of the ten training views
+/// and frames 1–6, and keeps the field because it lowers the loss on the rest (views 3 and 7,
+/// frames 7–9; measured 0.654 → 0.245). The field makes the re-simulation far closer to the
+/// capture (measured test PSNR 32.54 dB, the global model ~27.4; Chamfer at the last frame
+/// 10.2 mm against ~27) and finds the soft half (median 1.62e4 Pa, 0.09 decades off, asserted
+/// within the issue's 0.15). Not asserted, because not met: the stiff half's median within
+/// 0.15 (measured 2.4e5 Pa, 0.40 decades low: ten 80² frames show it barely bending). About
+/// 5 min.
 #[test]
 fn model_auto_keeps_a_field_that_separates_the_two_halves() {
     let run = BuiltinRun::with_family(
@@ -121,14 +121,19 @@ fn model_auto_keeps_a_field_that_separates_the_two_halves() {
     let median = |k: usize| parts[k]["log10_youngs_modulus_median"].as_f64().unwrap();
     assert_eq!(parts[0]["youngs_modulus_truth"].as_f64(), Some(2e4));
     assert!(
-        median(1) - median(0) > 0.2,
+        median(1) - median(0) > 0.5,
         "the stiff half's median above the soft half's: {} vs {}",
         median(1),
         median(0)
     );
+    let soft_error = parts[0]["log10_youngs_modulus_error"].as_f64().unwrap();
+    assert!(
+        soft_error < 0.15,
+        "the soft half's median is {soft_error} decades off"
+    );
     let psnr = e["test_psnr_mean"].as_f64().unwrap();
     let chamfer = e["chamfer_last_frame_m"].as_f64().unwrap();
     println!("test PSNR {psnr:.2} dB, Chamfer {:.1} mm", chamfer * 1e3);
-    assert!(psnr > 29.5, "test PSNR {psnr} (global model: 27.42 dB)");
+    assert!(psnr > 30.5, "test PSNR {psnr} (global model: 27.42 dB)");
     assert!(chamfer < 0.02, "Chamfer {chamfer} m (global model: 0.0271)");
 }
