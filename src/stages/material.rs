@@ -36,7 +36,7 @@ use crate::physics::rollout::{
 use crate::physics::views::{LossWeights, ViewsLoss};
 use crate::pipeline::spec::{Preset, SceneSpec};
 use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
-use crate::stages::material_select::{AutoSettings, ModelSelection, field_wins, held_out_views};
+use crate::stages::material_select::{AutoSettings, ModelSelection, decide, split_views};
 use crate::stages::velocity::{VelocityResult, check_family_guess, check_guess};
 
 /// How the material varies over the object.
@@ -643,18 +643,7 @@ impl TypedStage for MaterialStage {
                 None,
             ),
             MaterialModel::Auto => {
-                let mut train: Vec<u16> = targets.iter().map(|t| t.row.view).collect();
-                train.sort_unstable();
-                train.dedup();
-                let held =
-                    held_out_views(&train, p.auto.held_out_views.as_deref()).map_err(|m| {
-                        StageError::failed(FitError::Invalid(format!("stages.{}.{m}", ctx.name)))
-                    })?;
-                let fit_views: Vec<u16> = train
-                    .iter()
-                    .copied()
-                    .filter(|v| !held.contains(v))
-                    .collect();
+                let (held, fit_views) = split_views(&targets, &p.auto, ctx.name)?;
                 // The field sees the fit views' frames 1..=fit_last; everything else decides.
                 let held_frames = p.auto.held_out_frames(last);
                 let fit_last = last.saturating_sub(held_frames);
@@ -714,13 +703,8 @@ impl TypedStage for MaterialStage {
                         let lf = eval(&f.values, Some(&f.moduli), &mut held_loss)?.loss();
                         selection.loss_global_held_out = Some(lg);
                         selection.loss_field_held_out = Some(lf);
-                        let wins = field_wins(lg, lf, p.auto.margin);
-                        selection.reason = format!(
-                            "held-out loss {lf:.5} with the field against {lg:.5} with the global model ({:+.2} %); the field {} by more than {:.1} %",
-                            100.0 * (lf / lg - 1.0),
-                            if wins { "wins" } else { "does not win" },
-                            100.0 * p.auto.margin
-                        );
+                        let wins;
+                        (wins, selection.reason) = decide(lg, lf, p.auto.margin, "global model");
                         ctx.progress
                             .log(&format!("material auto: {}", selection.reason));
                         if wins {

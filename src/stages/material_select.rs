@@ -119,6 +119,41 @@ pub fn held_out_views(train: &[u16], asked: Option<&[u16]>) -> Result<Vec<u16>, 
     Ok(held)
 }
 
+/// The training views of `targets` split into (held out, fitted on) for `auto` of stage
+/// `stage` (sorted, distinct).
+///
+/// # Errors
+/// [`held_out_views`]' errors, named with the stage.
+pub fn split_views(
+    targets: &[crate::scene::targets::Target],
+    auto: &AutoSettings,
+    stage: &str,
+) -> Result<(Vec<u16>, Vec<u16>), crate::pipeline::stage::StageError> {
+    let mut train: Vec<u16> = targets.iter().map(|t| t.row.view).collect();
+    train.sort_unstable();
+    train.dedup();
+    let held = held_out_views(&train, auto.held_out_views.as_deref()).map_err(|m| {
+        crate::pipeline::stage::StageError::failed(crate::physics::fit::FitError::Invalid(format!(
+            "stages.{stage}.{m}"
+        )))
+    })?;
+    let fit = train.into_iter().filter(|v| !held.contains(v)).collect();
+    Ok((held, fit))
+}
+
+/// Whether the field wins (its held-out loss `field` below `(1 − margin)` × the simpler
+/// model's `simple`), and the reason in words (`simpler` names that model).
+pub fn decide(simple: f64, field: f64, margin: f64, simpler: &str) -> (bool, String) {
+    let wins = field_wins(simple, field, margin);
+    let reason = format!(
+        "held-out loss {field:.5} with the field against {simple:.5} with the {simpler} ({:+.2} %); the field {} by more than {:.1} %",
+        100.0 * (field / simple - 1.0),
+        if wins { "wins" } else { "does not win" },
+        100.0 * margin
+    );
+    (wins, reason)
+}
+
 /// Whether the field's held-out loss beats the global model's by more than `margin`.
 pub fn field_wins(global: f64, field: f64, margin: f64) -> bool {
     field.is_finite() && global.is_finite() && field < (1.0 - margin) * global

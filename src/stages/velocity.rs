@@ -32,7 +32,7 @@ use crate::physics::velocity_field::{
 use crate::physics::views::{LossWeights, ViewsLoss};
 use crate::pipeline::spec::{Preset, SceneSpec};
 use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
-use crate::stages::material_select::{AutoSettings, ModelSelection, field_wins, held_out_views};
+use crate::stages::material_select::{AutoSettings, ModelSelection, decide, split_views};
 use pipe_field::{AdamConfig as FieldAdamConfig, FieldAdam, LrSchedule};
 
 /// The velocity field learned.
@@ -524,18 +524,7 @@ impl TypedStage for Velocity {
             VelocityModel::Translation | VelocityModel::Rigid => (None, None),
             VelocityModel::Field => (Some(fit_field(ctx, &mut loss)?), None),
             VelocityModel::Auto => {
-                let mut train: Vec<u16> = targets.iter().map(|t| t.row.view).collect();
-                train.sort_unstable();
-                train.dedup();
-                let held =
-                    held_out_views(&train, p.auto.held_out_views.as_deref()).map_err(|m| {
-                        StageError::failed(FitError::Invalid(format!("stages.{}.{m}", ctx.name)))
-                    })?;
-                let fit_views: Vec<u16> = train
-                    .iter()
-                    .copied()
-                    .filter(|v| !held.contains(v))
-                    .collect();
+                let (held, fit_views) = split_views(&targets, &p.auto, ctx.name)?;
                 let mut held_loss = ViewsLoss::new(
                     &object,
                     fluid,
@@ -565,13 +554,7 @@ impl TypedStage for Velocity {
                     &mut held_loss,
                 )
                 .map_err(|e| fail(p.epochs, e))?;
-                let wins = field_wins(lg, lf, p.auto.margin);
-                let reason = format!(
-                    "held-out loss {lf:.5} with the field against {lg:.5} with the rigid motion ({:+.2} %); the field {} by more than {:.1} %",
-                    100.0 * (lf / lg - 1.0),
-                    if wins { "wins" } else { "does not win" },
-                    100.0 * p.auto.margin
-                );
+                let (wins, reason) = decide(lg, lf, p.auto.margin, "rigid motion");
                 ctx.progress.log(&format!("velocity auto: {reason}"));
                 let selection = ModelSelection {
                     kept: if wins { "field" } else { "rigid" }.into(),
