@@ -233,6 +233,7 @@ pub fn capture(scene: &PacnerfScene, camera_file: &Path) -> Capture {
                 world_from_camera: img.world_from_camera,
                 intrinsics: img.intrinsics,
                 file: file(img),
+                video_frame: None,
                 mask: DatasetFile {
                     logical_name: format!("gt/masks/m_{}_{}.png", img.view, img.frame),
                     path: gt_mask_path(&scene.root, img.view, img.frame),

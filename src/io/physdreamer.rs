@@ -6,6 +6,7 @@
 //! <scene>/
 //!   transforms_train.json       Blender cameras (else sparse/0: COLMAP, PINHOLE cameras)
 //!   videos/<view>/<frame>.png   the frames of each camera (<view>: the stem of its file_path)
+//!   videos/<view>.mp4           or its video (.mp4, .mov, .webm, .mkv; read with FFmpeg)
 //!   masks/<view>/<frame>.png    optional object masks, 0/255 (ingest `matte: gt` reads them)
 //!   point_cloud.ply             the trained 3DGS (every Gaussian of the scene)
 //!   clean_object_points.ply     optional: points of the object (the rest is clutter)
@@ -26,7 +27,10 @@
 //! same) and listed in [`PhysdreamerScene::skipped`].
 //!
 //! A video folder's frames are its `*.png` files sorted by number when every name is one
-//! (`0.png` … `12.png`), else by name; every camera must have as many.
+//! (`0.png` … `12.png`), else by name; every camera must have as many. A camera without a
+//! folder may have a video file instead (`ffprobe` counts its frames, `ffmpeg` decodes them;
+//! both must be on `PATH`); its rate is the frame rate when the camera file gives no `fps`, and
+//! its masks, if any, are the PNGs of `masks/<view>/` in the same order.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -51,7 +55,7 @@ pub struct PhysdreamerScene {
     pub view_names: BTreeMap<u16, String>,
     /// Cameras listed without a video folder (their names), skipped.
     pub skipped: Vec<String>,
-    /// Frames per second, and whether the file gave it.
+    /// Frames per second, and whether the dataset gave it (the camera file, else a video).
     pub fps: f64,
     pub fps_given: bool,
     /// `point_cloud.ply`.
@@ -130,38 +134,59 @@ pub fn read_scene(root: &Path) -> Result<PhysdreamerScene, PhysdreamerError> {
             message: "no cameras: neither transforms_train.json nor sparse/0/ exists".into(),
         });
     };
-    let fps_given = fps.is_some();
-    let fps = fps.unwrap_or(DEFAULT_FPS);
-    let mut images = Vec::new();
-    let mut view_names = BTreeMap::new();
+    // Each camera's frames: a folder of PNGs, else one video file.
+    let mut sources = Vec::new();
     let mut skipped = Vec::new();
-    // (folder, frame count) of the first camera with a video, to compare the others with.
-    let mut first: Option<(PathBuf, usize, (u32, u32))> = None;
-    let camera_file = camera_files[0].path.clone();
     for cam in &cameras {
         let folder = root.join("videos").join(&cam.name);
-        if !folder.is_dir() {
+        if folder.is_dir() {
+            let names = frame_names(&folder)?;
+            let size = image_size(&folder.join(&names[0]))?;
+            sources.push((cam, Frames::Pngs { folder, names }, size));
+        } else if let Some((rel, path)) = video_file(root, &cam.name) {
+            let info = super::video::probe(&path).map_err(|e| PhysdreamerError::Read {
+                path: path.clone(),
+                message: e.to_string(),
+            })?;
+            let size = (info.width, info.height);
+            sources.push((cam, Frames::Video { rel, path, info }, size));
+        } else {
             skipped.push(cam.name.clone());
-            continue;
         }
-        let names = frame_names(&folder)?;
-        let size = image_size(&folder.join(&names[0]))?;
+    }
+    // Frames per second: the camera file's, else the first video's own, else PAC-NeRF's.
+    let video_fps = sources.iter().find_map(|(_, f, _)| match f {
+        Frames::Video { info, .. } => info.fps,
+        Frames::Pngs { .. } => None,
+    });
+    let fps_given = fps.is_some() || video_fps.is_some();
+    let fps = fps.or(video_fps).unwrap_or(DEFAULT_FPS);
+    let mut images = Vec::new();
+    let mut view_names = BTreeMap::new();
+    // (source, frame count, size) of the first camera with frames, to compare the others with.
+    let mut first: Option<(PathBuf, usize, (u32, u32))> = None;
+    let camera_file = camera_files[0].path.clone();
+    for (cam, frames, size) in &sources {
+        let (source, count) = match frames {
+            Frames::Pngs { folder, names } => (folder.clone(), names.len()),
+            Frames::Video { path, info, .. } => (path.clone(), info.frames),
+        };
+        let size = *size;
         match &first {
-            None => first = Some((folder.clone(), names.len(), size)),
+            None => first = Some((source.clone(), count, size)),
             Some((f0, n0, s0)) => {
-                if names.len() != *n0 {
+                if count != *n0 {
                     return Err(PhysdreamerError::Layout {
-                        path: folder,
+                        path: source,
                         message: format!(
-                            "{} frames, but {} has {n0}: every camera must have as many frames",
-                            names.len(),
+                            "{count} frames, but {} has {n0}: every camera must have as many frames",
                             f0.display()
                         ),
                     });
                 }
                 if size != *s0 {
                     return Err(PhysdreamerError::Layout {
-                        path: folder.join(&names[0]),
+                        path: source,
                         message: format!(
                             "{}×{} pixels, but the frames of {} are {}×{}: all images of a \
                              capture must have one size",
@@ -179,29 +204,75 @@ pub fn read_scene(root: &Path) -> Result<PhysdreamerScene, PhysdreamerError> {
             path: camera_file.clone(),
             message: format!("more than {} cameras", u16::MAX),
         })?;
-        if names.len() > usize::from(u16::MAX) {
+        if count > usize::from(u16::MAX) {
             return Err(PhysdreamerError::Layout {
-                path: folder,
-                message: format!("{} frames: at most {}", names.len(), u16::MAX),
+                path: source,
+                message: format!("{count} frames: at most {}", u16::MAX),
             });
         }
         let intrinsics = (cam.intrinsics)(size.0, size.1)?;
         view_names.insert(view, cam.name.clone());
-        for (frame, name) in names.iter().enumerate() {
-            let rel = |dir: &str| format!("{dir}/{}/{name}", cam.name);
+        // A video's masks: the PNGs of masks/<view>/ in frame order, when the folder exists.
+        let video_masks = match frames {
+            Frames::Video { .. } => {
+                let folder = root.join("masks").join(&cam.name);
+                match folder.is_dir() {
+                    false => None,
+                    true => {
+                        let names = frame_names(&folder)?;
+                        if names.len() != count {
+                            return Err(PhysdreamerError::Layout {
+                                path: folder,
+                                message: format!(
+                                    "{} masks, but the video {} has {count} frames",
+                                    names.len(),
+                                    source.display()
+                                ),
+                            });
+                        }
+                        Some(names)
+                    }
+                }
+            }
+            Frames::Pngs { .. } => None,
+        };
+        for frame in 0..count {
+            let (file, video_frame, mask_name) = match frames {
+                Frames::Pngs { names, .. } => {
+                    let rel = format!("videos/{}/{}", cam.name, names[frame]);
+                    (
+                        DatasetFile {
+                            path: root.join(&rel),
+                            logical_name: rel,
+                        },
+                        None,
+                        names[frame].clone(),
+                    )
+                }
+                Frames::Video { rel, path, .. } => (
+                    DatasetFile {
+                        path: path.clone(),
+                        logical_name: rel.clone(),
+                    },
+                    Some(frame),
+                    match &video_masks {
+                        Some(names) => names[frame].clone(),
+                        None => format!("{frame:05}.png"),
+                    },
+                ),
+            };
+            let mask = format!("masks/{}/{mask_name}", cam.name);
             images.push(CaptureImage {
                 view,
                 frame: frame as u16,
                 time_s: cam.time0 + frame as f64 / fps,
                 world_from_camera: cam.world_from_camera,
                 intrinsics,
-                file: DatasetFile {
-                    path: root.join(rel("videos")),
-                    logical_name: rel("videos"),
-                },
+                file,
+                video_frame,
                 mask: DatasetFile {
-                    path: root.join(rel("masks")),
-                    logical_name: rel("masks"),
+                    path: root.join(&mask),
+                    logical_name: mask,
                 },
             });
         }
@@ -210,8 +281,8 @@ pub fn read_scene(root: &Path) -> Result<PhysdreamerScene, PhysdreamerError> {
         return Err(PhysdreamerError::Layout {
             path: root.join("videos"),
             message: format!(
-                "no camera has a video folder (expected videos/<view>/ with PNG frames for the \
-                 cameras of {}: {})",
+                "no camera has a video (expected videos/<view>/ with PNG frames, or a video \
+                 videos/<view>.mp4, for the cameras of {}: {})",
                 camera_file.display(),
                 cameras
                     .iter()
@@ -263,6 +334,30 @@ pub fn read_scene(root: &Path) -> Result<PhysdreamerScene, PhysdreamerError> {
         point_cloud,
         clean_object: ply("clean_object_points.ply"),
         moving_part: ply("moving_part_points.ply"),
+    })
+}
+
+/// Where a camera's frames are.
+enum Frames {
+    /// `videos/<view>/`: its PNG names, in frame order.
+    Pngs { folder: PathBuf, names: Vec<String> },
+    /// `videos/<view>.mp4` (or another [`VIDEO_EXTENSIONS`] file), decoded by FFmpeg.
+    Video {
+        rel: String,
+        path: PathBuf,
+        info: super::video::VideoInfo,
+    },
+}
+
+/// Video files read for a camera without a PNG folder (with FFmpeg).
+pub const VIDEO_EXTENSIONS: [&str; 4] = ["mp4", "mov", "webm", "mkv"];
+
+/// `videos/<name>.<ext>` for the first [`VIDEO_EXTENSIONS`] that exists: (logical name, path).
+fn video_file(root: &Path, name: &str) -> Option<(String, PathBuf)> {
+    VIDEO_EXTENSIONS.iter().find_map(|ext| {
+        let rel = format!("videos/{name}.{ext}");
+        let path = root.join(&rel);
+        path.is_file().then_some((rel, path))
     })
 }
 

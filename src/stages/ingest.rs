@@ -194,203 +194,216 @@ impl TypedStage for Ingest {
                     .map(input),
             );
         }
+        // The frames of a video share its file: hash it once.
+        let mut seen = BTreeSet::new();
+        out.retain(|f| seen.insert(f.logical_name.clone()));
         Ok(out)
     }
 
     fn run(&self, p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
-        let scene = ctx.scene;
-        let (ds, trained) = open(scene)?;
-        let views: BTreeSet<u16> = ds.images.iter().map(|i| i.view).collect();
-        if let Some(v) = scene.test_views.iter().find(|v| !views.contains(v)) {
-            return Err(StageError::failed(IngestError::Invalid(format!(
-                "scene.test_views: camera {v} is not in {} (cameras: {})",
-                ds.camera_files[0].path.display(),
-                views
-                    .iter()
-                    .map(u16::to_string)
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            ))));
-        }
-        let images = selected(&ds, p);
-        if images.is_empty() {
-            return Err(StageError::failed(IngestError::Invalid(format!(
-                "stages.ingest.frames: none of the frames {:?} exists in {}",
-                p.frames.as_deref().unwrap_or_default(),
-                scene.path.display()
-            ))));
-        }
-        std::fs::create_dir_all(ctx.out_dir.join("images")).map_err(StageError::failed)?;
-        std::fs::create_dir_all(ctx.out_dir.join("masks")).map_err(StageError::failed)?;
-        std::fs::create_dir_all(ctx.out_dir.join("plates")).map_err(StageError::failed)?;
+        let out = run_ingest(p, ctx);
+        // Videos are decoded once per ingest (their frames are read camera by camera).
+        crate::io::video::forget_decoded();
+        out
+    }
+}
 
-        if p.matte == MatteMode::Plate && ds.plates.is_empty() {
+/// The ingest: images matted (or masked) and resampled, frames table, and a PhysDreamer
+/// scene's trained Gaussians.
+fn run_ingest(p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
+    let scene = ctx.scene;
+    let (ds, trained) = open(scene)?;
+    let views: BTreeSet<u16> = ds.images.iter().map(|i| i.view).collect();
+    if let Some(v) = scene.test_views.iter().find(|v| !views.contains(v)) {
+        return Err(StageError::failed(IngestError::Invalid(format!(
+            "scene.test_views: camera {v} is not in {} (cameras: {})",
+            ds.camera_files[0].path.display(),
+            views
+                .iter()
+                .map(u16::to_string)
+                .collect::<Vec<_>>()
+                .join(", ")
+        ))));
+    }
+    let images = selected(&ds, p);
+    if images.is_empty() {
+        return Err(StageError::failed(IngestError::Invalid(format!(
+            "stages.ingest.frames: none of the frames {:?} exists in {}",
+            p.frames.as_deref().unwrap_or_default(),
+            scene.path.display()
+        ))));
+    }
+    std::fs::create_dir_all(ctx.out_dir.join("images")).map_err(StageError::failed)?;
+    std::fs::create_dir_all(ctx.out_dir.join("masks")).map_err(StageError::failed)?;
+    std::fs::create_dir_all(ctx.out_dir.join("plates")).map_err(StageError::failed)?;
+
+    if p.matte == MatteMode::Plate && ds.plates.is_empty() {
+        return Err(StageError::failed(IngestError::Invalid(format!(
+            "stages.ingest.matte: `plate` mattes against background plates, and the {} \
+             layout of {} has none: use `gt` (the dataset's masks) or `none` (the whole \
+             image is the object)",
+            scene.dataset.name(),
+            scene.path.display()
+        ))));
+    }
+    // Plates first: they fix each camera's image size (else the first image does).
+    let plates: Vec<(u16, Rgb8)> = ds
+        .plates
+        .iter()
+        .filter(|(v, _)| images.iter().any(|i| i.view == **v))
+        .map(|(v, img)| image::read_rgb8(&img.path).map(|r| (*v, r)))
+        .collect::<Result<_, _>>()
+        .map_err(|e| StageError::failed(IngestError::from(e)))?;
+    let full = match plates.first() {
+        Some((_, pl)) => (pl.width, pl.height),
+        None => images[0]
+            .read_rgb8()
+            .map(|r| (r.width, r.height))
+            .map_err(|e| StageError::failed(IngestError::from(e)))?,
+    };
+    let (w0, h0) = full;
+    for (v, pl) in &plates {
+        if (pl.width, pl.height) != (w0, h0) {
             return Err(StageError::failed(IngestError::Invalid(format!(
-                "stages.ingest.matte: `plate` mattes against background plates, and the {} \
-                 layout of {} has none: use `gt` (the dataset's masks) or `none` (the whole \
-                 image is the object)",
-                scene.dataset.name(),
-                scene.path.display()
+                "{}: plate is {}×{}, but {} is {w0}×{h0}; all images of a capture must have one size",
+                ds.plates[v].path.display(),
+                pl.width,
+                pl.height,
+                ds.plates[&plates[0].0].path.display()
             ))));
         }
-        // Plates first: they fix each camera's image size (else the first image does).
-        let plates: Vec<(u16, Rgb8)> = ds
-            .plates
-            .iter()
-            .filter(|(v, _)| images.iter().any(|i| i.view == **v))
-            .map(|(v, img)| image::read_rgb8(&img.path).map(|r| (*v, r)))
-            .collect::<Result<_, _>>()
-            .map_err(|e| StageError::failed(IngestError::from(e)))?;
-        let full = match plates.first() {
-            Some((_, pl)) => (pl.width, pl.height),
-            None => image::read_rgb8(&images[0].file.path)
-                .map(|r| (r.width, r.height))
-                .map_err(|e| StageError::failed(IngestError::from(e)))?,
-        };
-        let (w0, h0) = full;
-        for (v, pl) in &plates {
-            if (pl.width, pl.height) != (w0, h0) {
-                return Err(StageError::failed(IngestError::Invalid(format!(
-                    "{}: plate is {}×{}, but {} is {w0}×{h0}; all images of a capture must have one size",
-                    ds.plates[v].path.display(),
-                    pl.width,
-                    pl.height,
-                    ds.plates[&plates[0].0].path.display()
-                ))));
-            }
-        }
-        let (w2, h2) = resample::scaled_size(w0, h0, p.scale);
-        let plates: Vec<(u16, Rgb8)> = plates
-            .into_iter()
-            .map(|(v, pl)| {
-                let data = resample::area(&pl.data, w0, h0, 3, w2, h2);
-                let small = Rgb8 {
-                    width: w2,
-                    height: h2,
-                    data,
-                };
-                image::write_rgb8(&ctx.out_dir.join(plate_rel(v)), &small)
-                    .map(|()| (v, small))
-                    .map_err(|e| StageError::failed(IngestError::from(e)))
-            })
-            .collect::<Result<_, _>>()?;
-
-        ctx.progress.start("matte", images.len() as u64);
-        let out_dir = ctx.out_dir.to_path_buf();
-        let mut by_frame: BTreeMap<u16, Vec<&CaptureImage>> = BTreeMap::new();
-        for img in &images {
-            by_frame.entry(img.frame).or_default().push(img);
-        }
-        let mut rows = Vec::with_capacity(images.len());
-        let mut ious = Vec::new();
-        let mut agreements = Vec::new();
-        let mut warnings = Vec::new();
-        for frame_images in by_frame.values() {
-            ctx.check_interrupted()?;
-            let source = match plates.is_empty() {
-                true => SizeSource::Image(&images[0].file.path),
-                false => SizeSource::Plates,
+    }
+    let (w2, h2) = resample::scaled_size(w0, h0, p.scale);
+    let plates: Vec<(u16, Rgb8)> = plates
+        .into_iter()
+        .map(|(v, pl)| {
+            let data = resample::area(&pl.data, w0, h0, 3, w2, h2);
+            let small = Rgb8 {
+                width: w2,
+                height: h2,
+                data,
             };
-            let done = ingest_frame(
-                frame_images,
-                &plates,
-                ((full, source), (w2, h2)),
-                p,
-                scene,
-                &out_dir,
-            )
-            .map_err(StageError::failed)?;
-            ctx.progress.inc(frame_images.len() as u64);
-            for d in done {
-                let (view, frame) = (Some(d.row.view), Some(d.row.frame));
-                if let Some(iou) = d.iou {
-                    ious.push(iou);
-                    ctx.metric(metric(view, frame, "mask_iou", iou));
-                }
-                if let Some(a) = d.agreement {
-                    agreements.push(a);
-                    ctx.metric(metric(view, frame, "mask_agreement", a));
-                    if a < AGREEMENT_WARNING {
-                        warnings.push(format!(
-                            "camera {} frame {}: agreement {a:.2}",
-                            d.row.view, d.row.frame
-                        ));
-                    }
-                }
-                if d.empty {
+            image::write_rgb8(&ctx.out_dir.join(plate_rel(v)), &small)
+                .map(|()| (v, small))
+                .map_err(|e| StageError::failed(IngestError::from(e)))
+        })
+        .collect::<Result<_, _>>()?;
+
+    ctx.progress.start("matte", images.len() as u64);
+    let out_dir = ctx.out_dir.to_path_buf();
+    let mut by_frame: BTreeMap<u16, Vec<&CaptureImage>> = BTreeMap::new();
+    for img in &images {
+        by_frame.entry(img.frame).or_default().push(img);
+    }
+    let mut rows = Vec::with_capacity(images.len());
+    let mut ious = Vec::new();
+    let mut agreements = Vec::new();
+    let mut warnings = Vec::new();
+    for frame_images in by_frame.values() {
+        ctx.check_interrupted()?;
+        let source = match plates.is_empty() {
+            true => SizeSource::Image(&images[0].file.path),
+            false => SizeSource::Plates,
+        };
+        let done = ingest_frame(
+            frame_images,
+            &plates,
+            ((full, source), (w2, h2)),
+            p,
+            scene,
+            &out_dir,
+        )
+        .map_err(StageError::failed)?;
+        ctx.progress.inc(frame_images.len() as u64);
+        for d in done {
+            let (view, frame) = (Some(d.row.view), Some(d.row.frame));
+            if let Some(iou) = d.iou {
+                ious.push(iou);
+                ctx.metric(metric(view, frame, "mask_iou", iou));
+            }
+            if let Some(a) = d.agreement {
+                agreements.push(a);
+                ctx.metric(metric(view, frame, "mask_agreement", a));
+                if a < AGREEMENT_WARNING {
                     warnings.push(format!(
-                        "camera {} frame {}: the mask is empty",
+                        "camera {} frame {}: agreement {a:.2}",
                         d.row.view, d.row.frame
                     ));
                 }
-                rows.push(d.row);
             }
-        }
-        rows.sort_by_key(|r| (r.view, r.frame));
-        for (name, values) in [("mask_iou", &ious), ("mask_agreement", &agreements)] {
-            if values.is_empty() {
-                continue;
-            }
-            let mean = values.iter().sum::<f64>() / values.len() as f64;
-            let min = values.iter().cloned().fold(f64::INFINITY, f64::min);
-            ctx.metric(metric(None, None, &format!("{name}_mean"), mean));
-            ctx.metric(metric(None, None, &format!("{name}_min"), min));
-        }
-        if !ious.is_empty() {
-            let mean = ious.iter().sum::<f64>() / ious.len() as f64;
-            let min = ious.iter().cloned().fold(f64::INFINITY, f64::min);
-            ctx.progress.log(&format!(
-                "mask IoU against {}: mean {mean:.4}, min {min:.4} over {} images",
-                match scene.dataset {
-                    DatasetKind::Pacnerf => "gt/masks",
-                    DatasetKind::Physdreamer => "masks/",
-                },
-                ious.len()
-            ));
-        }
-        if !warnings.is_empty() {
-            ctx.progress.warn(&format!(
-                "{} of {} masks disagree with the other cameras (agreement below {AGREEMENT_WARNING}: how much of the mask the other cameras' visual hull explains, IoU) or are empty; check these images and masks/: {}",
-                warnings.len(),
-                rows.len(),
-                warnings.join("; ")
-            ));
-        }
-        let resized = if (w2, h2) == full {
-            String::new()
-        } else {
-            format!(" (scale {}: from {w0}×{h0})", p.scale)
-        };
-        ctx.progress.log(&format!(
-            "{} images from {} cameras ({} test), {w2}×{h2} px{resized}",
-            rows.len(),
-            views.len(),
-            scene.test_views.len(),
-        ));
-        table::write(&ctx.out_dir.join("frames.arrow"), &Frames { rows })
-            .map_err(StageError::failed)?;
-        if let Some(t) = &trained {
-            if !t.skipped.is_empty() {
-                ctx.progress.warn(&format!(
-                    "{}: {} camera(s) of {} have no video folder videos/<name>/ and are skipped: {}",
-                    scene.path.display(),
-                    t.skipped.len(),
-                    t.capture.camera_files[0].logical_name,
-                    t.skipped.join(", ")
+            if d.empty {
+                warnings.push(format!(
+                    "camera {} frame {}: the mask is empty",
+                    d.row.view, d.row.frame
                 ));
             }
-            if !t.fps_given {
-                ctx.progress.log(&format!(
-                    "{} gives no `fps`: frames {:.4} s apart ({} frames/s assumed)",
-                    t.capture.camera_files[0].logical_name,
-                    1.0 / t.fps,
-                    t.fps
-                ));
-            }
-            trained::write(t, ctx)?;
+            rows.push(d.row);
         }
-        Ok(())
     }
+    rows.sort_by_key(|r| (r.view, r.frame));
+    for (name, values) in [("mask_iou", &ious), ("mask_agreement", &agreements)] {
+        if values.is_empty() {
+            continue;
+        }
+        let mean = values.iter().sum::<f64>() / values.len() as f64;
+        let min = values.iter().cloned().fold(f64::INFINITY, f64::min);
+        ctx.metric(metric(None, None, &format!("{name}_mean"), mean));
+        ctx.metric(metric(None, None, &format!("{name}_min"), min));
+    }
+    if !ious.is_empty() {
+        let mean = ious.iter().sum::<f64>() / ious.len() as f64;
+        let min = ious.iter().cloned().fold(f64::INFINITY, f64::min);
+        ctx.progress.log(&format!(
+            "mask IoU against {}: mean {mean:.4}, min {min:.4} over {} images",
+            match scene.dataset {
+                DatasetKind::Pacnerf => "gt/masks",
+                DatasetKind::Physdreamer => "masks/",
+            },
+            ious.len()
+        ));
+    }
+    if !warnings.is_empty() {
+        ctx.progress.warn(&format!(
+            "{} of {} masks disagree with the other cameras (agreement below {AGREEMENT_WARNING}: how much of the mask the other cameras' visual hull explains, IoU) or are empty; check these images and masks/: {}",
+            warnings.len(),
+            rows.len(),
+            warnings.join("; ")
+        ));
+    }
+    let resized = if (w2, h2) == full {
+        String::new()
+    } else {
+        format!(" (scale {}: from {w0}×{h0})", p.scale)
+    };
+    ctx.progress.log(&format!(
+        "{} images from {} cameras ({} test), {w2}×{h2} px{resized}",
+        rows.len(),
+        views.len(),
+        scene.test_views.len(),
+    ));
+    table::write(&ctx.out_dir.join("frames.arrow"), &Frames { rows })
+        .map_err(StageError::failed)?;
+    if let Some(t) = &trained {
+        if !t.skipped.is_empty() {
+            ctx.progress.warn(&format!(
+                "{}: {} camera(s) of {} have no video (videos/<name>/ or videos/<name>.mp4) and are skipped: {}",
+                scene.path.display(),
+                t.skipped.len(),
+                t.capture.camera_files[0].logical_name,
+                t.skipped.join(", ")
+            ));
+        }
+        if !t.fps_given {
+            ctx.progress.log(&format!(
+                "{} gives no `fps`: frames {:.4} s apart ({} frames/s assumed)",
+                t.capture.camera_files[0].logical_name,
+                1.0 / t.fps,
+                t.fps
+            ));
+        }
+        trained::write(t, ctx)?;
+    }
+    Ok(())
 }
 
 /// The scene's capture, and for a PhysDreamer scene its trained Gaussians' files.
@@ -473,12 +486,12 @@ fn load<'a>(
     full: ((u32, u32), SizeSource<'_>),
     small: (u32, u32),
 ) -> Result<Loaded<'a>, IngestError> {
-    let rgb = image::read_rgb8(&img.file.path)?;
+    let rgb = img.read_rgb8()?;
     let (w, h) = (rgb.width, rgb.height);
     if (w, h) != full.0 {
         return Err(IngestError::Invalid(format!(
             "{}: image is {w}×{h}, but {} is {}×{}",
-            img.file.path.display(),
+            img.describe(),
             match full.1 {
                 SizeSource::Plates => format!("the plate of camera {}", img.view),
                 SizeSource::Image(p) => p.display().to_string(),
@@ -491,7 +504,7 @@ fn load<'a>(
     if !(0.0..=f64::from(w)).contains(&cx) || !(0.0..=f64::from(h)).contains(&cy) {
         return Err(IngestError::Invalid(format!(
             "{}: principal point ({cx}, {cy}) lies outside the {w}×{h} image; are the intrinsics for another resolution?",
-            img.file.path.display()
+            img.describe()
         )));
     }
     let (w2, h2) = small;

@@ -464,3 +464,113 @@ fn colmap_cameras_ingest_as_the_blender_ones() {
         "{e}"
     );
 }
+
+/// A still capture (one frame per camera) gives no frame interval: an edit without
+/// `frame_dt` is refused naming the field, one with it runs.
+#[test]
+fn a_single_frame_capture_edits_with_its_stated_frame_dt() {
+    let dir = tempfile::tempdir().unwrap();
+    let edit = |dt: &str| {
+        format!(
+            "  ingest: {{matte: gt}}\n  init: {{source: dataset}}\n  edit:\n    push:\n      \
+             material: {{family: elastic, youngs_modulus: 2.0e4, poisson_ratio: 0.3}}\n      \
+             gravity: [0, 0, 0]\n      boundaries: [{{kind: box, min: [-0.07, -0.01, -0.07], max: [0.07, 0.11, 0.07]}}]\n      \
+             interactions: [{{kind: force, select: {{box: {{min: [-0.02, 0.26, -0.05], max: [0.02, 0.32, 0.05]}}}}, force: [0.4, 0, 0], start: 0.0}}]\n      \
+             frames: 3\n{dt}      cameras: [{{view: 0}}]\n"
+        )
+    };
+    let file = scene_copy(dir.path(), &edit(""));
+    for kind in ["videos", "masks"] {
+        for view in 0..4 {
+            for frame in 1..6 {
+                std::fs::remove_file(
+                    dir.path()
+                        .join(format!("scene/{kind}/frame_{view:05}/{frame:05}.png")),
+                )
+                .unwrap();
+            }
+        }
+    }
+    let e = run(&file, dir.path(), &[], None).unwrap_err();
+    assert!(
+        e.contains("stages.edit.push.frame_dt: the capture has a single frame"),
+        "{e}"
+    );
+    let p = run(&file, dir.path(), &["edit.push.frame_dt=0.02"], None).unwrap();
+    let report: Value = serde_json::from_str(
+        &std::fs::read_to_string(entry(&p, dir.path(), "edit.push").join("edit.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(
+        report["applied"]["frame_dt_s"].as_f64(),
+        Some(0.02),
+        "{report}"
+    );
+}
+
+/// Cameras whose frames are one video file each (`videos/<view>.mp4`, as PhysDreamer's
+/// generated videos are) ingest to the same frames as the PNG folders they were encoded
+/// from (lossless H.264 RGB, 24 frames/s: the rate comes from the videos, the camera file
+/// gives none), masks from `masks/<view>/`; without FFmpeg on PATH the error says what to
+/// install or do.
+#[test]
+fn mp4_videos_ingest_as_their_png_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let stages = "  ingest: {matte: gt}\n  init: {source: dataset}\n";
+    let pngs = dir.path().join("pngs");
+    std::fs::create_dir_all(&pngs).unwrap();
+    let png_file = scene_copy(&pngs, stages);
+    let mp4s = dir.path().join("mp4s");
+    std::fs::create_dir_all(&mp4s).unwrap();
+    let mp4_file = scene_copy(&mp4s, stages);
+    for view in 0..4 {
+        let folder = mp4s.join(format!("scene/videos/frame_{view:05}"));
+        let out = std::process::Command::new("ffmpeg")
+            .args(["-hide_banner", "-loglevel", "error", "-nostdin", "-y"])
+            .args(["-framerate", "24", "-i"])
+            .arg(folder.join("%05d.png"))
+            .args(["-c:v", "libx264rgb", "-qp", "0", "-pix_fmt", "rgb24"])
+            .arg(folder.with_extension("mp4"))
+            .output()
+            .expect("ffmpeg on PATH (CI installs it)");
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        std::fs::remove_dir_all(&folder).unwrap();
+    }
+    let a = run(&png_file, &pngs, &[], Some("ingest")).unwrap();
+    let b = run(&mp4_file, &mp4s, &[], Some("ingest")).unwrap();
+    let (ea, eb) = (entry(&a, &pngs, "ingest"), entry(&b, &mp4s, "ingest"));
+    let fa: Frames = pipe::scene::table::read(&ea.join("frames.arrow")).unwrap();
+    let fb: Frames = pipe::scene::table::read(&eb.join("frames.arrow")).unwrap();
+    assert_eq!(fa.rows.len(), 24);
+    assert_eq!(fa.rows, fb.rows);
+    for r in &fa.rows {
+        for rel in [&r.image, &r.mask] {
+            let (x, y) = (
+                std::fs::read(ea.join(rel)).unwrap(),
+                std::fs::read(eb.join(rel)).unwrap(),
+            );
+            assert!(x == y, "{rel} differs between the PNG and MP4 ingests");
+        }
+    }
+
+    // Without FFmpeg.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_pipe"))
+        .args(["--quiet", "--workdir"])
+        .arg(&mp4s)
+        .args(["run", "--force", "ingest", "--until", "ingest"])
+        .arg(&mp4_file)
+        .env("PATH", "")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("frame_00000.mp4")
+            && stderr.contains("reading videos needs `ffprobe` (FFmpeg) on PATH"),
+        "{stderr}"
+    );
+}

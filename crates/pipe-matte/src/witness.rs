@@ -121,3 +121,149 @@ pub(crate) fn witnesses(
     }
     out
 }
+
+#[cfg(test)]
+mod tests {
+    use glam::{DMat3, UVec3};
+
+    use super::*;
+    use crate::camera::Pinhole;
+    use crate::view::RgbImageView;
+
+    const SIZE: u32 = 64;
+    const SHADOW: f64 = 0.4;
+
+    /// A camera at `eye` looking at the origin, 50° field of view.
+    fn look_at(eye: DVec3) -> Pinhole {
+        let z = (-eye).normalize();
+        let x = z.cross(DVec3::Y).normalize();
+        let y = z.cross(x);
+        let f = f64::from(SIZE) / 2.0 / 25f64.to_radians().tan();
+        Pinhole {
+            world_from_camera_rot: DMat3::from_cols(x, y, z),
+            centre_world: eye,
+            fx: f,
+            fy: f,
+            cx: f64::from(SIZE) / 2.0,
+            cy: f64::from(SIZE) / 2.0,
+            width: SIZE,
+            height: SIZE,
+        }
+    }
+
+    /// A textured floor (RGB, 0–255): smooth waves and tiles, so a shifted copy of it differs.
+    fn floor(g: DVec3) -> [f64; 3] {
+        let tile = if ((g.x * 10.0).floor() + (g.z * 10.0).floor()) as i64 % 2 == 0 {
+            30.0
+        } else {
+            0.0
+        };
+        let wave = 60.0 * (17.0 * g.x).sin() * (13.0 * g.z).cos();
+        [
+            130.0 + wave + tile,
+            120.0 + 0.8 * wave + tile,
+            100.0 + 0.6 * wave,
+        ]
+    }
+
+    /// The shadow: a square on the ground, dimming it by [`SHADOW`] from every side.
+    fn in_shadow(g: DVec3) -> bool {
+        g.x.abs() < 0.1 && g.z.abs() < 0.1
+    }
+
+    /// Where view 0 sees an object of the shadow's tone (its own texture: the floor's, moved).
+    fn in_object(g: DVec3) -> bool {
+        (0.0..0.08).contains(&g.x) && g.z.abs() < 0.08
+    }
+
+    /// Plate and image of a camera; view 0 also shows the object.
+    fn render(cam: &Pinhole, with_object: bool) -> (Vec<u8>, Vec<u8>) {
+        let n = (SIZE * SIZE) as usize;
+        let (mut plate, mut image) = (vec![0u8; 3 * n], vec![0u8; 3 * n]);
+        for i in 0..n {
+            let (u, v) = (
+                (i % SIZE as usize) as f64 + 0.5,
+                (i / SIZE as usize) as f64 + 0.5,
+            );
+            let g = cam.ground_point(u, v).expect("every pixel sees the floor");
+            let b = floor(g);
+            let seen = match (with_object && in_object(g), in_shadow(g)) {
+                (true, _) => floor(g + DVec3::new(0.13, 0.0, 0.07)).map(|c| c * SHADOW),
+                (false, true) => b.map(|c| c * SHADOW),
+                (false, false) => b,
+            };
+            for c in 0..3 {
+                plate[3 * i + c] = b[c].round() as u8;
+                image[3 * i + c] = seen[c].round() as u8;
+            }
+        }
+        (plate, image)
+    }
+
+    fn pixel_of(cam: &Pinhole, g: DVec3) -> usize {
+        let (u, v) = cam.pixel(g).expect("in view");
+        (v * SIZE + u) as usize
+    }
+
+    #[test]
+    fn a_shadow_is_witnessed_alike_an_object_of_its_tone_is_not_and_occluded_views_abstain() {
+        let cams: Vec<Pinhole> = [0.0f64, 2.1, 4.2]
+            .iter()
+            .map(|a| look_at(DVec3::new(1.0 * a.cos(), 1.0, 1.0 * a.sin())))
+            .collect();
+        let pictures: Vec<(Vec<u8>, Vec<u8>)> = cams
+            .iter()
+            .enumerate()
+            .map(|(k, c)| render(c, k == 0))
+            .collect();
+        let views: Vec<View<'_>> = cams
+            .iter()
+            .zip(&pictures)
+            .map(|(c, (plate, image))| View {
+                camera: *c,
+                image: RgbImageView::new(image, SIZE as usize, SIZE as usize).unwrap(),
+                plate: RgbImageView::new(plate, SIZE as usize, SIZE as usize).unwrap(),
+            })
+            .collect();
+        let proven = vec![false; (SIZE * SIZE) as usize];
+        let p = MultiViewParams::default();
+        let empty = Hull::from_occupancy(DVec3::splat(5.0), 0.05, UVec3::ONE, vec![false]);
+        let of =
+            |g: DVec3, hull: &Hull| witnesses(0, pixel_of(&cams[0], g), &views, &proven, hull, &p);
+
+        // The shadow: both other views see the ground behind the pixel dimmed the same way.
+        let shadow = DVec3::new(-0.06, 0.0, 0.0);
+        assert_eq!(
+            of(shadow, &empty),
+            Witnesses {
+                agree: 2,
+                disagree: 0
+            }
+        );
+        // The object of the shadow's mean tone, in front of the shadowed ground: its texture
+        // is not the dimmed floor's, and both views say so.
+        let object = DVec3::new(0.04, 0.0, 0.0);
+        assert_eq!(
+            of(object, &empty),
+            Witnesses {
+                agree: 0,
+                disagree: 2
+            }
+        );
+        // A kept voxel between camera 1 and the shadowed point: camera 1 abstains.
+        let mid = 0.5 * (cams[1].centre_world + shadow);
+        let wall = Hull::from_occupancy(mid - DVec3::splat(0.05), 0.1, UVec3::ONE, vec![true]);
+        assert_eq!(
+            of(shadow, &wall),
+            Witnesses {
+                agree: 1,
+                disagree: 0
+            }
+        );
+        // A pixel on the image border has no block: no witness.
+        assert_eq!(
+            witnesses(0, 5, &views, &proven, &empty, &p),
+            Witnesses::default()
+        );
+    }
+}

@@ -113,8 +113,9 @@ pub struct Scene {
     /// The learned velocity field's weights, when `velocity` kept one (added to the rigid
     /// motion at each particle's rest position with `keep_velocity`).
     pub velocity_field: Option<PathBuf>,
-    /// The capture's frame interval (s) and frame count.
-    pub frame_dt: f64,
+    /// The capture's frame interval (s; none for a single-frame capture, whose edits must
+    /// give `frame_dt`) and frame count.
+    pub frame_dt: Option<f64>,
     pub frames: u32,
     /// Grid cells across the object unless the edit says (the `material` stage's).
     pub cells: f64,
@@ -352,7 +353,13 @@ fn read_scene(ctx: &StageContext<'_>) -> Result<Scene, EditError> {
     let cells = material
         .and_then(|m| m.manifest.key_material.params["cells"].as_f64())
         .unwrap_or(DEFAULT_CELLS);
-    let frame_dt = frame_interval(&frames.rows).map_err(|e| inputs(&e))?;
+    let single_frame = frames.rows.iter().all(|r| r.frame == frames.rows[0].frame);
+    let frame_dt = match single_frame {
+        // A still capture (a PhysDreamer scene of one frame, a static multi-view set) has no
+        // interval of its own; each edit states its `frame_dt`.
+        true => None,
+        false => Some(frame_interval(&frames.rows).map_err(|e| inputs(&e))?),
+    };
     let frame_count = frames.rows.iter().map(|r| r.frame).max().unwrap_or(0);
     let train0: Vec<&FrameRow> = frames
         .rows
@@ -652,7 +659,18 @@ pub fn run(
     if let Some(b) = &p.boundaries {
         sim_scene.boundaries = b.clone();
     }
-    let frame_dt = p.frame_dt.unwrap_or(scene.frame_dt);
+    let frame_dt = match p.frame_dt.or(scene.frame_dt) {
+        Some(dt) => dt,
+        None => {
+            return Err(EditError::Invalid {
+                location: location.clone(),
+                field: "frame_dt".into(),
+                message: "the capture has a single frame, so it gives no frame interval: \
+                          set `frame_dt` (s per frame, e.g. 0.0417 for 24 frames/s)"
+                    .into(),
+            });
+        }
+    };
     let frames = p.frames.unwrap_or(scene.frames).max(2);
     let cells = p.cells.unwrap_or(scene.cells);
     let (moving, fixed) = split(&scene.gaussians);
