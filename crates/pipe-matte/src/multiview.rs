@@ -19,7 +19,7 @@
 //! 5. Agreement: per view, the visual hull of the other views' masks (a voxel may miss
 //!    `hull_max_misses` of them) is projected into the view; `agreement` is the IoU of the
 //!    view's mask with it. A mask torn in half scores low; the ground-truth masks of the sample
-//!    scenes score 0.79 and more, mean 0.90–0.94 (the other views cannot see this view's
+//!    scenes score 0.77 and more, mean 0.92–0.94 (the other views cannot see this view's
 //!    concavities, e.g. a torus's hole seen through).
 //!
 //! Measured (`examples/matte_scene.rs`, README): the sample scenes' IoU rises by 0.003–0.007,
