@@ -70,9 +70,26 @@ pub struct IngestParams {
     /// Image scale in (0, 1]: every image, plate and ground-truth mask is area-resampled to
     /// `round(scale·size)` and the intrinsics follow (`fx, cx` by the width's ratio, `fy, cy`
     /// by the height's), so every later stage works on the smaller images (about `scale²` of
-    /// the pixels and of the rendering time). The preset sets it when the file does not.
+    /// the pixels and of the rendering time).
     #[serde(default = "default_scale")]
     pub scale: f64,
+    /// Longest image side (pixels) after `scale`: larger captures are resampled further
+    /// down to it, so a preset's cost does not grow with the camera's resolution. The preset
+    /// sets it (`draft` 200, `standard` 400, `paper` none: full size); `null` never resamples.
+    #[serde(default)]
+    pub max_size: Option<u32>,
+}
+
+impl IngestParams {
+    /// The scale applied to a `w`×`h` capture: `scale`, made smaller when the longest side
+    /// would still exceed `max_size`.
+    pub fn effective_scale(&self, w: u32, h: u32) -> f64 {
+        let longest = f64::from(w.max(h)) * self.scale;
+        match self.max_size {
+            Some(m) if longest > f64::from(m) => self.scale * f64::from(m) / longest,
+            _ => self.scale,
+        }
+    }
 }
 
 fn default_scale() -> f64 {
@@ -132,8 +149,12 @@ impl TypedStage for Ingest {
         vec![(Frames::NAME, Frames::VERSION)]
     }
 
-    fn preset_params(&self, _preset: Preset) -> Value {
-        json!({})
+    fn preset_params(&self, preset: Preset) -> Value {
+        match preset {
+            Preset::Draft => json!({"max_size": 200}),
+            Preset::Standard => json!({"max_size": 400}),
+            Preset::Paper => json!({"max_size": null}),
+        }
     }
 
     fn validate(&self, p: &IngestParams) -> Result<(), ParamError> {
@@ -149,6 +170,15 @@ impl TypedStage for Ingest {
                 message: format!(
                     "must be in (0, 1] (images are only ever made smaller), found {}",
                     p.scale
+                ),
+            });
+        }
+        if p.max_size.is_some_and(|m| m < 16) {
+            return Err(ParamError {
+                path: "max_size".into(),
+                message: format!(
+                    "must be at least 16 pixels (or null: full size), found {}",
+                    p.max_size.unwrap_or(0)
                 ),
             });
         }
@@ -273,7 +303,8 @@ fn run_ingest(p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageE
             ))));
         }
     }
-    let (w2, h2) = resample::scaled_size(w0, h0, p.scale);
+    let scale = p.effective_scale(w0, h0);
+    let (w2, h2) = resample::scaled_size(w0, h0, scale);
     let plates: Vec<(u16, Rgb8)> = plates
         .into_iter()
         .map(|(v, pl)| {
@@ -373,7 +404,7 @@ fn run_ingest(p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageE
     let resized = if (w2, h2) == full {
         String::new()
     } else {
-        format!(" (scale {}: from {w0}×{h0})", p.scale)
+        format!(" (scale {scale:.4}: from {w0}×{h0})")
     };
     ctx.progress.log(&format!(
         "{} images from {} cameras ({} test), {w2}×{h2} px{resized}",

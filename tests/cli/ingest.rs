@@ -472,3 +472,39 @@ fn scale_halves_images_intrinsics_and_masks() {
     let e = bad.run().unwrap_err();
     assert!(e.contains("scale") && e.contains("1.5"), "{e}");
 }
+
+/// `max_size` caps the longest side (the presets set it: a 100×100 capture is left alone by
+/// `draft`'s 200); it combines with `scale`; below 16 pixels it is refused by name.
+#[test]
+fn max_size_caps_the_longest_side_and_presets_leave_small_captures_alone() {
+    let size = |preset: &str, ingest: &str| {
+        let run = BuiltinRun::new(&fixture(), "[10]", preset, ingest);
+        run.run().unwrap();
+        let frames: Frames = table::read(&run.entry("ingest").join("frames.arrow")).unwrap();
+        let r = &frames.rows[0];
+        let img = image::open(run.entry("ingest").join(&r.image))
+            .unwrap()
+            .into_rgb8();
+        assert_eq!(img.dimensions(), (r.width, r.height));
+        (r.width, r.height, r.fx)
+    };
+    let json: Vec<serde_json::Value> =
+        serde_json::from_slice(&std::fs::read(fixture().join("all_data.json")).unwrap()).unwrap();
+    let fx = json[0]["intrinsic"][0][0].as_f64().unwrap();
+    let (w, h, f) = size("draft", "  ingest: {frames: [0]}\n");
+    assert_eq!((w, h), (100, 100));
+    assert_eq!(f, fx);
+    let (w, h, f) = size("draft", "  ingest: {frames: [0], max_size: 60}\n");
+    assert_eq!((w, h), (60, 60));
+    assert!((f - 0.6 * fx).abs() < 1e-9 * fx, "{f} against {fx}");
+    let (w, h, _) = size(
+        "draft",
+        "  ingest: {frames: [0], scale: 0.5, max_size: 40}\n",
+    );
+    assert_eq!((w, h), (40, 40));
+    let (w, h, _) = size("paper", "  ingest: {frames: [0], scale: 0.5}\n");
+    assert_eq!((w, h), (50, 50));
+    let bad = BuiltinRun::new(&fixture(), "[10]", "draft", "  ingest: {max_size: 8}\n");
+    let e = bad.run().unwrap_err();
+    assert!(e.contains("max_size") && e.contains('8'), "{e}");
+}
