@@ -16,10 +16,15 @@
 //! `datasets-tools physdreamer DST [--size 80] [--frames 6] [--views 4] ...` writes a generated
 //! scene in the PhysDreamer layout: a pot, a swaying leaf on it (the moving part) and a stone
 //! beside it (clutter), as Gaussians with the selection points and videos ([`physdreamer`]).
+//!
+//! `datasets-tools scene DST --family sand --youngs-modulus 2e5 --poisson-ratio 0.3
+//! --friction-angle-deg 30 [--shape ball|bar|blob] ...` writes a generated scene of one
+//! homogeneous object of any material family, with its truth ([`scene`]).
 
 mod composite;
 mod physdreamer;
 mod resample;
+mod scene;
 mod shadow;
 mod texture;
 mod two_material;
@@ -94,6 +99,11 @@ enum Command {
     /// `clean_object_points.ply`, `moving_part_points.ply`, `transforms_train.json`, and a
     /// video and masks per camera.
     Physdreamer(physdreamer::Args),
+    /// Write a generated scene of one homogeneous object of any material family (bar, ball or
+    /// blob), dropped onto the ground, simulated by `pipe simulate`'s path and ray-traced as
+    /// shaded spheres, with its ground truth (gt/params.json, gt/particles, gt/masks,
+    /// gt/scene.sim.yaml).
+    Scene(scene::Args),
 }
 
 fn main() -> Result<()> {
@@ -124,6 +134,7 @@ fn main() -> Result<()> {
         }),
         Command::TwoMaterial(args) => two_material::run(&args),
         Command::Physdreamer(args) => physdreamer::run(&args),
+        Command::Scene(args) => scene::run(&args),
     }
 }
 

@@ -53,6 +53,24 @@ impl StepSearch {
     }
 }
 
+/// Epochs over which a field's loss must fall by [`STALL_FRACTION`] of itself for its fit to
+/// go on.
+pub const STALL_WINDOW: usize = 3;
+/// See [`STALL_WINDOW`].
+pub const STALL_FRACTION: f64 = 1e-3;
+
+/// Whether a fit whose loss at the start of each epoch was `losses` has stalled: over the last
+/// [`STALL_WINDOW`] epochs the loss fell by less than [`STALL_FRACTION`] of itself (a field
+/// that explains nothing more than the global model, e.g. a velocity field over a rigid
+/// throw, stops after a few epochs instead of running them all).
+pub fn stalled(losses: &[f64]) -> bool {
+    let n = losses.len();
+    n > STALL_WINDOW && {
+        let (old, new) = (losses[n - 1 - STALL_WINDOW], losses[n - 1]);
+        old - new < STALL_FRACTION * old.abs()
+    }
+}
+
 /// `a + t·(b − a)`, element by element.
 pub fn lerp(a: &[f64], b: &[f64], t: f64) -> Vec<f64> {
     a.iter().zip(b).map(|(a, b)| a + t * (b - a)).collect()
@@ -94,5 +112,16 @@ mod tests {
         );
         assert_eq!(s.run(9.0, |_| Err("boom")), Err("boom"));
         assert_eq!(lerp(&[0.0, 2.0], &[1.0, 4.0], 0.5), vec![0.5, 3.0]);
+    }
+
+    #[test]
+    fn a_fit_stalls_when_three_epochs_gain_less_than_a_thousandth() {
+        assert!(!stalled(&[1.0, 1.0, 1.0]));
+        assert!(stalled(&[1.0, 1.0, 1.0, 1.0]));
+        assert!(stalled(&[1.0, 0.9999, 0.9998, 0.99905]));
+        assert!(!stalled(&[1.0, 0.9999, 0.9998, 0.9985]));
+        // Only the last window counts; a loss that rose has stalled.
+        assert!(!stalled(&[2.0, 1.0, 0.9, 0.8, 0.7]));
+        assert!(stalled(&[2.0, 1.0, 0.9, 0.9, 1.0]));
     }
 }

@@ -238,7 +238,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 7;
+    const VERSION: u32 = 8;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 

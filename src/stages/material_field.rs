@@ -18,7 +18,7 @@ use crate::physics::params::{MaterialValues, Param};
 use crate::physics::rollout::{
     FrameGradient, Moduli, NextMaterial, Rollout, RolloutError, Truncate, Wants, is_fluid,
 };
-use crate::physics::step_search::{StepSearch, lerp};
+use crate::physics::step_search::{StepSearch, lerp, stalled};
 use crate::physics::views::ViewsLoss;
 use crate::pipeline::spec::MaterialFamily;
 use crate::pipeline::stage::{MetricRow, StageContext, StageError};
@@ -143,6 +143,7 @@ pub(crate) fn fit(
     ));
     let mut search = StepSearch::default();
     ctx.progress.start("field epoch", u64::from(epochs));
+    let mut losses = Vec::new();
     for epoch in 0..epochs {
         ctx.check_interrupted()?;
         let (mut cur_values, mut cur_moduli) = (values.clone(), moduli.clone());
@@ -302,6 +303,19 @@ pub(crate) fn fit(
             out.loss()
         ));
         ctx.progress.inc(1);
+        // With the searched step (the loss never rises), a fit that gains nothing stops.
+        if p.field.truncate == Truncate::None {
+            losses.push(loss_after.unwrap_or(out.loss()));
+            if stalled(&losses) {
+                ctx.progress.log(&format!(
+                    "material field: stopped after epoch {} of {epochs}: the loss fell less than {} % over {} epochs",
+                    epoch + 1,
+                    crate::physics::step_search::STALL_FRACTION * 100.0,
+                    crate::physics::step_search::STALL_WINDOW
+                ));
+                break;
+            }
+        }
     }
     Ok(FieldFit {
         field,

@@ -24,7 +24,7 @@ use crate::physics::material_field::percentiles;
 use crate::physics::object::Object;
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::rollout::{Rollout, RolloutError, Wants, is_fluid};
-use crate::physics::step_search::{StepSearch, lerp};
+use crate::physics::step_search::{StepSearch, lerp, stalled};
 use crate::physics::track;
 use crate::physics::velocity_field::{
     VelocityField, VelocityFieldSettings, WEIGHTS_FILE, initial_velocities, write_weights,
@@ -230,7 +230,7 @@ impl VelocityResult {
 impl TypedStage for Velocity {
     type Params = VelocityParams;
     const KIND: &'static str = "velocity";
-    const VERSION: u32 = 5;
+    const VERSION: u32 = 6;
     const DESCRIPTION: &'static str = "Learn the initial velocity from the first frames (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup"];
 
@@ -405,6 +405,8 @@ impl TypedStage for Velocity {
         };
         ctx.progress.start("epoch", u64::from(p.epochs));
         ctx.progress.inc(u64::from(first_epoch));
+        // The loss after each epoch's step: three epochs that gain less than 0.1 % end the fit.
+        let mut losses: Vec<f64> = Vec::new();
         for epoch in first_epoch..p.epochs {
             ctx.check_interrupted()?;
             if converged {
@@ -464,7 +466,8 @@ impl TypedStage for Velocity {
             metric("step", it.step);
             metric("trials", it.trials as f64);
             x = it.u;
-            converged = search.converged();
+            losses.push(it.loss.min(l));
+            converged = search.converged() || stalled(&losses);
             ctx.progress.message(&format!(
                 "loss {l:.5}  v [{:.4}, {:.4}, {:.4}] m/s",
                 x[0], x[1], x[2]
@@ -729,6 +732,7 @@ fn fit_velocity_field(
         vf.field.param_count()
     ));
     ctx.progress.start("field epoch", u64::from(epochs));
+    let mut losses = Vec::new();
     for epoch in 0..epochs {
         ctx.check_interrupted()?;
         let out = Rollout {
@@ -807,6 +811,16 @@ fn fit_velocity_field(
             out.loss()
         ));
         ctx.progress.inc(1);
+        losses.push(found.map_or(out.loss(), |(_, l)| l));
+        if stalled(&losses) {
+            ctx.progress.log(&format!(
+                "velocity field: stopped after epoch {} of {epochs}: the loss fell less than {} % over {} epochs",
+                epoch + 1,
+                crate::physics::step_search::STALL_FRACTION * 100.0,
+                crate::physics::step_search::STALL_WINDOW
+            ));
+            break;
+        }
     }
     Ok((vf, v0))
 }

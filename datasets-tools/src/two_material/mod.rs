@@ -23,10 +23,10 @@
 //! The output is a function of the arguments only: bit-identical across runs and thread
 //! counts (the MPM is deterministic for any thread count; the renderer is sequential).
 
-mod bar;
+pub(crate) mod bar;
 pub(crate) mod cameras;
 mod deformation;
-mod render;
+pub(crate) mod render;
 mod simulate;
 
 use std::path::{Path, PathBuf};
@@ -46,7 +46,7 @@ use render::Look;
 pub const FRAME_DT: f64 = 1.0 / 24.0;
 
 /// Horizontal field of view of the cameras (degrees), as the sample scenes.
-const FOV_X_DEG: f64 = 40.0;
+pub(crate) const FOV_X_DEG: f64 = 40.0;
 
 /// `datasets-tools two-material` arguments.
 #[derive(Debug, Clone, clap::Args)]
@@ -325,7 +325,7 @@ fn write_scene(args: &Args) -> Result<()> {
     Ok(())
 }
 
-fn write_rgb(path: &Path, size: u32, rgb: &[u8]) -> Result<()> {
+pub(crate) fn write_rgb(path: &Path, size: u32, rgb: &[u8]) -> Result<()> {
     pimage::write_rgb8(
         path,
         &pimage::Rgb8 {
@@ -337,12 +337,18 @@ fn write_rgb(path: &Path, size: u32, rgb: &[u8]) -> Result<()> {
     Ok(())
 }
 
-fn to_f32(x: &[DVec3]) -> Vec<[f32; 3]> {
+pub(crate) fn to_f32(x: &[DVec3]) -> Vec<[f32; 3]> {
     x.iter().map(|p| p.to_array().map(|v| v as f32)).collect()
 }
 
 /// Every sphere lies in front of the camera and inside its image.
-fn check_in_view(cam: &Camera, x: &[DVec3], radius: f64, view: u16, frame: i32) -> Result<()> {
+pub(crate) fn check_in_view(
+    cam: &Camera,
+    x: &[DVec3],
+    radius: f64,
+    view: u16,
+    frame: i32,
+) -> Result<()> {
     for (i, p) in x.iter().enumerate() {
         let inside = cam.project(*p).is_some_and(|(u, v, z)| {
             let r = cam.fx * radius / z;
