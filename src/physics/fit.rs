@@ -152,6 +152,7 @@ impl Inputs {
             frames: u32::from(self.last_frame()) + 1,
             label: PathBuf::from(format!("stages.{}", ctx.name)),
             splat_filter: self.splat_filter(),
+            anchor: None,
         };
         Object::build(&self.gaussians, &settings).map_err(StageError::failed)
     }

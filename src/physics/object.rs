@@ -43,6 +43,9 @@ pub struct ObjectSettings<'a> {
     /// The rasterizer's low-pass filter (m) in the images the Gaussians were fitted to
     /// ([`render_filter`]); 0 for none.
     pub splat_filter: f64,
+    /// Centres (m) of Gaussians that do not simulate, to anchor the body to where it meets
+    /// them ([`crate::simulate::spec::BoundarySpec::Anchor`]); `None`: no anchor.
+    pub anchor: Option<std::sync::Arc<Vec<[f64; 3]>>>,
 }
 
 /// The simulated object.
@@ -117,7 +120,13 @@ impl Object {
             })
             .collect();
         let text = sim_yaml(&s.material, [0.0; 3], s.scene, s.frame_dt, dx, Some(true));
-        let spec = SimSpec::parse(&s.label, &text)?;
+        let mut spec = SimSpec::parse(&s.label, &text)?;
+        if let Some(still) = &s.anchor {
+            spec.boundaries
+                .push(crate::simulate::spec::BoundarySpec::Anchor {
+                    still: still.clone(),
+                });
+        }
         let body = Body::new(&spec, &s.label, x0, &splats, s.frames)?;
         Ok(Self {
             gaussians: kept,

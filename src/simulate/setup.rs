@@ -240,6 +240,10 @@ pub fn setup(
                 aabb: Aabb::new(DVec3::from_array(aabb.min), DVec3::from_array(aabb.max)),
                 kind: condition.kind(),
             },
+            BoundarySpec::Anchor { ref still } => Collider::Anchor {
+                cells: std::sync::Arc::new(anchor_cells(still, x0, dx)),
+                cell: dx,
+            },
         })
         .collect();
     let forces = spec
@@ -325,7 +329,7 @@ fn ground_under(spec: &SimSpec, x0: &[DVec3]) -> Option<Floor> {
                 BoundarySpec::HalfSpace { point, normal, .. } => {
                     (DVec3::from_array(point), DVec3::from_array(normal))
                 }
-                BoundarySpec::Box { .. } => return None,
+                BoundarySpec::Box { .. } | BoundarySpec::Anchor { .. } => return None,
             };
             // A plane across the down axis, its free side up.
             let facing = up * normal[axis] / normal.length();
@@ -399,7 +403,54 @@ pub fn depth_inside(b: &BoundarySpec, x: DVec3) -> f64 {
         BoundarySpec::Box { aabb, .. } => (x - DVec3::from_array(aabb.min))
             .min(DVec3::from_array(aabb.max) - x)
             .min_element(),
+        // Holding the particles next to the still points is what an anchor is for.
+        BoundarySpec::Anchor { .. } => f64::NEG_INFINITY,
     }
+}
+
+/// The cells (integer coordinates of the nodes, lattice of edge `dx`, m) an anchor holds: the
+/// nodes within `dx` of every still point that has a particle of `x0` within `2·dx` (a node
+/// held there lies inside the quadratic B-spline support, 1.5 cells, of that particle).
+pub fn anchor_cells(
+    still: &[[f64; 3]],
+    x0: &[DVec3],
+    dx: f64,
+) -> std::collections::HashSet<[i32; 3]> {
+    let cell = |p: DVec3| {
+        let k = (p / dx).round();
+        [k.x as i32, k.y as i32, k.z as i32]
+    };
+    let mut buckets: std::collections::HashMap<[i32; 3], Vec<DVec3>> =
+        std::collections::HashMap::new();
+    for p in x0 {
+        buckets.entry(cell(*p)).or_default().push(*p);
+    }
+    let around = |c: [i32; 3], r: i32| {
+        (-r..=r).flat_map(move |i| {
+            (-r..=r).flat_map(move |j| (-r..=r).map(move |k| [c[0] + i, c[1] + j, c[2] + k]))
+        })
+    };
+    let reach = 2.0 * dx;
+    let mut out = std::collections::HashSet::new();
+    for s in still {
+        let s = DVec3::from_array(*s);
+        let c = cell(s);
+        let near = around(c, 3).any(|n| {
+            buckets
+                .get(&n)
+                .is_some_and(|ps| ps.iter().any(|p| (*p - s).length() <= reach))
+        });
+        if !near {
+            continue;
+        }
+        for n in around(c, 1) {
+            let node = DVec3::new(f64::from(n[0]), f64::from(n[1]), f64::from(n[2])) * dx;
+            if (node - s).length() <= dx {
+                out.insert(n);
+            }
+        }
+    }
+    out
 }
 
 /// A warning per boundary that particles start inside, more than half a cell deep: its
@@ -613,6 +664,10 @@ pub fn describe_boundaries(boundaries: &[BoundarySpec], domain: bool) -> Vec<Str
                 aabb.max,
                 name(condition)
             ),
+            BoundarySpec::Anchor { still } => format!(
+                "anchor: the grid next to {} Gaussians that do not simulate (sticky)",
+                still.len()
+            ),
         })
         .collect();
     if domain {
@@ -814,5 +869,22 @@ mod tests {
             "{MAT}frame_dt: 0.04\ngrid_dx: 0.1\nparticle_volume: 1e-4\n"
         ));
         assert!(setup(&s, Path::new("p.ply"), (&[DVec3::ONE], &[]), 2).is_ok());
+    }
+
+    /// A still point anchors only within two cells of a particle, and holds the nodes within a
+    /// cell of itself.
+    #[test]
+    fn an_anchor_holds_the_nodes_next_to_still_points_that_touch_the_body() {
+        let dx = 0.01;
+        let body = [DVec3::new(0.0, 0.0, 0.0), DVec3::new(0.01, 0.0, 0.0)];
+        let near = anchor_cells(&[[0.029, 0.0, 0.0]], &body, dx);
+        assert!(!near.is_empty());
+        for c in &near {
+            let node = DVec3::new(f64::from(c[0]), f64::from(c[1]), f64::from(c[2])) * dx;
+            assert!((node - DVec3::new(0.029, 0.0, 0.0)).length() <= dx + 1e-12);
+        }
+        assert!(near.contains(&[3, 0, 0]) && near.contains(&[2, 0, 0]));
+        assert!(anchor_cells(&[[0.035, 0.0, 0.0]], &body, dx).is_empty());
+        assert!(anchor_cells(&[], &body, dx).is_empty());
     }
 }

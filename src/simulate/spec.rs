@@ -113,6 +113,13 @@ pub enum BoundarySpec {
         /// Treatment.
         condition: Condition,
     },
+    /// An anchor (not written in simulation files: the `edit` stage adds it): the grid nodes
+    /// within a cell of the still points (m) that lie within two cells of a simulated particle
+    /// are held still, so a moving part stays joined to what does not simulate.
+    Anchor {
+        /// Centres of the Gaussians that do not simulate.
+        still: std::sync::Arc<Vec<[f64; 3]>>,
+    },
 }
 
 /// Which particles a force acts on.

@@ -238,7 +238,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 8;
+    const VERSION: u32 = 9;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 
@@ -614,7 +614,7 @@ impl TypedStage for MaterialStage {
             )?;
         }
 
-        let global = values_of(&u);
+        let mut global = values_of(&u);
         let global_s = started.elapsed().as_secs_f64();
         // The losses of a material, from a clean rollout.
         let eval = |values: &MaterialValues,
@@ -665,6 +665,7 @@ impl TypedStage for MaterialStage {
                     loss_field_held_out: None,
                     margin: p.auto.margin,
                     fit_frames_last: fit_last,
+                    loss_global_at_field_median_held_out: None,
                 };
                 match field_applies {
                     Err(e) => {
@@ -701,10 +702,24 @@ impl TypedStage for MaterialStage {
                         )?;
                         let lg = eval(&global, None, &mut held_loss)?.loss();
                         let lf = eval(&f.values, Some(&f.moduli), &mut held_loss)?.loss();
+                        // One material at the field's median: the field phase also goes on
+                        // descending, so a global fit its epochs left short makes any field
+                        // look better; a single E where the field ended may do as well.
+                        let at_median = at_field_median(&f);
+                        let lm = eval(&at_median, None, &mut held_loss)?.loss();
                         selection.loss_global_held_out = Some(lg);
                         selection.loss_field_held_out = Some(lf);
+                        selection.loss_global_at_field_median_held_out = Some(lm);
+                        let (simple, simpler) = if lm < lg {
+                            (lm, "global model at the field's median")
+                        } else {
+                            (lg, "global model")
+                        };
                         let wins;
-                        (wins, selection.reason) = decide(lg, lf, p.auto.margin, "global model");
+                        (wins, selection.reason) = decide(simple, lf, p.auto.margin, simpler);
+                        if !wins && lm < lg {
+                            global = at_median;
+                        }
                         ctx.progress
                             .log(&format!("material auto: {}", selection.reason));
                         if wins {
@@ -869,6 +884,16 @@ impl TypedStage for MaterialStage {
 }
 
 /// The learned values next to the scene's ground truth, when it has one.
+/// The family's values of a fitted field with E (and ν) at the median of its particles'.
+fn at_field_median(f: &crate::stages::material_field::FieldFit) -> MaterialValues {
+    let log_e: Vec<f64> = f.moduli.e.iter().map(|e| e.log10()).collect();
+    let mut m = f.values.clone();
+    m.values
+        .insert(Param::E, 10f64.powf(percentiles(&log_e)[1]));
+    m.values.insert(Param::Nu, percentiles(&f.moduli.nu)[1]);
+    m
+}
+
 fn report(out: &MaterialResult, scene: &SceneSpec) -> String {
     let gt = crate::physics::fit::ground_truth(scene);
     let truth = |key: &str| gt.as_ref().and_then(|g| g[key].as_f64());

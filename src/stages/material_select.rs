@@ -72,6 +72,10 @@ pub struct ModelSelection {
     /// The field was fitted on frames `1..=fit_frames_last` (the later ones held out).
     #[serde(default)]
     pub fit_frames_last: u16,
+    /// The held-out loss of one material at the field's median E and ν (material only): kept
+    /// instead of the global fit when lower, and the field must beat the lower of the two.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loss_global_at_field_median_held_out: Option<f64>,
 }
 
 /// The held-out views among `train` (sorted, distinct): `asked`, checked, or every fourth from

@@ -568,6 +568,7 @@ impl TypedStage for Velocity {
                     loss_field_held_out: Some(lf),
                     margin: p.auto.margin,
                     fit_frames_last: last,
+                    loss_global_at_field_median_held_out: None,
                 };
                 (wins.then_some(f), Some(selection))
             }

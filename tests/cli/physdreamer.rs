@@ -574,3 +574,76 @@ fn mp4_videos_ingest_as_their_png_frames() {
         "{stderr}"
     );
 }
+
+/// Without a declared clamp, the edit anchors the leaf where it meets the pot (`anchor`, on by
+/// default): under the push its top bends while its foot stays; with `anchor: false` the
+/// whole leaf slides away.
+#[test]
+fn the_moving_part_is_anchored_to_the_still_object_without_a_declared_clamp() {
+    let dir = tempfile::tempdir().unwrap();
+    let edit = |name: &str, anchor: bool| {
+        format!(
+            "    {name}:\n      material: {{family: elastic, youngs_modulus: 2.0e4, poisson_ratio: 0.3}}\n      \
+             gravity: [0, 0, 0]\n      boundaries: [{{kind: ground}}]\n      anchor: {anchor}\n      \
+             interactions: [{{kind: force, select: {{box: {{min: [-0.02, 0.26, -0.05], max: [0.02, 0.32, 0.05]}}}}, force: [0.4, 0, 0], start: 0.0, end: 0.25}}]\n      \
+             frames: 9\n      cameras: []\n"
+        )
+    };
+    let file = scene_copy(
+        dir.path(),
+        &format!(
+            "  ingest: {{matte: gt}}\n  init: {{source: dataset}}\n  edit:\n{}{}",
+            edit("held", true),
+            edit("free", false)
+        ),
+    );
+    let p = run(&file, dir.path(), &[], None).unwrap();
+    let g: Gaussians =
+        pipe::scene::table::read(&entry(&p, dir.path(), "init").join("gaussians.arrow")).unwrap();
+    let moving: Vec<usize> = (0..g.len()).filter(|&i| g.simulated[i]).collect();
+    let pick = |lo: f32, hi: f32| -> Vec<usize> {
+        (0..moving.len())
+            .filter(|&k| (lo..hi).contains(&g.position[moving[k]][1]))
+            .collect()
+    };
+    let (top, foot) = (pick(0.30, 1.0), pick(0.0, 0.11));
+    assert!(!top.is_empty() && !foot.is_empty());
+    let peaks = |name: &str| {
+        let dir = entry(&p, dir.path(), name);
+        let (mut top_peak, mut foot_peak) = (0.0f64, 0.0f64);
+        for f in 0..9 {
+            let s = pipe::io::ply::read_gaussians(&dir.join(format!("splats/splats_{f:04}.ply")))
+                .unwrap();
+            let dx = |k: usize| f64::from(s.position[k][0] - g.position[moving[k]][0]);
+            let mean = |ks: &[usize]| ks.iter().map(|&k| dx(k)).sum::<f64>() / ks.len() as f64;
+            top_peak = top_peak.max(mean(&top));
+            foot_peak = foot_peak.max(mean(&foot).abs());
+        }
+        let report: Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("edit.json")).unwrap()).unwrap();
+        (top_peak, foot_peak, report)
+    };
+    let (top_held, foot_held, report) = peaks("edit.held");
+    let (top_free, foot_free, _) = peaks("edit.free");
+    println!(
+        "anchored: top {top_held:.4} m, foot {foot_held:.2e} m; free: top {top_free:.4} m, foot {foot_free:.4} m"
+    );
+    assert!(
+        report["applied"]["boundaries"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|b| b
+                .as_str()
+                .unwrap()
+                .starts_with("anchor: the grid next to 1584 Gaussians")),
+        "{}",
+        report["applied"]["boundaries"]
+    );
+    assert!(top_held > 0.02, "anchored top moved {top_held} m");
+    assert!(foot_held < 2e-3, "anchored foot moved {foot_held} m");
+    assert!(
+        foot_free > 5.0 * foot_held.max(1e-4),
+        "free foot moved {foot_free} m"
+    );
+}

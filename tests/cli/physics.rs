@@ -168,6 +168,7 @@ fn object() -> Object {
             frames: 3,
             label: PathBuf::from("tiny"),
             splat_filter: 0.0,
+            anchor: None,
         },
     )
     .unwrap();

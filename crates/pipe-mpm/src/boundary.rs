@@ -43,6 +43,16 @@ pub enum Collider {
         /// Treatment.
         kind: BoundaryKind,
     },
+    /// An anchor: the nodes at `x` whose cell `round(x / cell)` (integer coordinates on a
+    /// lattice of edge `cell`, m) is in `cells` are held still (sticky). It holds a simulated
+    /// part where it joins parts that do not simulate (a leaf on its stem), as PhysDreamer
+    /// freezes the grid next to the still points.
+    Anchor {
+        /// The held cells.
+        cells: std::sync::Arc<std::collections::HashSet<[i32; 3]>>,
+        /// Their lattice's edge (m).
+        cell: f64,
+    },
 }
 
 impl Collider {
@@ -70,6 +80,15 @@ impl Collider {
                         field: "collider.normal",
                         value: normal.length(),
                         reason: "normal must have unit length",
+                    });
+                }
+            }
+            Collider::Anchor { cell, .. } => {
+                if !(cell.is_finite() && *cell > 0.0) {
+                    return Err(MpmError::InvalidParameter {
+                        field: "collider.anchor.cell",
+                        value: *cell,
+                        reason: "must be finite and > 0",
                     });
                 }
             }
@@ -115,6 +134,12 @@ impl Collider {
                 }
                 Some((best.1, kind))
             }
+            Collider::Anchor { ref cells, cell } => {
+                let k = (x / cell).round();
+                cells
+                    .contains(&[k.x as i32, k.y as i32, k.z as i32])
+                    .then_some((DVec3::Y, BoundaryKind::Sticky))
+            }
         }
     }
 }
@@ -135,6 +160,12 @@ impl Collider {
                     .map(|k| lo[a] + k as f64 * dx)
                     .any(|x| x > aabb.lo[a] && x < aabb.hi[a])
             }),
+            Collider::Anchor { ref cells, cell } => {
+                let (a, b) = ((lo / cell).round(), (hi / cell).round());
+                cells
+                    .iter()
+                    .any(|c| (0..3).all(|i| f64::from(c[i]) >= a[i] && f64::from(c[i]) <= b[i]))
+            }
         }
     }
 }
@@ -218,7 +249,7 @@ impl Boundaries {
         for c in &self.colliders {
             match c {
                 Collider::HalfSpace { normal, .. } => planes.push((axis_of(*normal)?, c)),
-                Collider::Box { .. } => return None,
+                Collider::Box { .. } | Collider::Anchor { .. } => return None,
             }
         }
         Some(std::array::from_fn(|a| {
@@ -367,5 +398,48 @@ mod tests {
             walls: Some(BoundaryKind::Slip),
         };
         assert!(boxed.clear_axes(&grid).is_none());
+        let anchored = Boundaries {
+            colliders: vec![anchor(&[[6, 4, 2]], 0.05)],
+            walls: None,
+        };
+        assert!(anchored.clear_axes(&grid).is_none());
+    }
+
+    fn anchor(cells: &[[i32; 3]], cell: f64) -> Collider {
+        Collider::Anchor {
+            cells: std::sync::Arc::new(cells.iter().copied().collect()),
+            cell,
+        }
+    }
+
+    /// An anchor holds exactly the nodes of its cells still, whatever their velocity, and
+    /// reaches a box of nodes only when one of its cells lies in it.
+    #[test]
+    fn an_anchor_holds_the_nodes_of_its_cells_only() {
+        let grid = GridSpec::new(Aabb::new(DVec3::ZERO, DVec3::splat(0.5)), 0.05, 2).unwrap();
+        let bc = Boundaries {
+            colliders: vec![anchor(&[[3, 4, 5], [3, 5, 5]], 0.05)],
+            walls: None,
+        };
+        assert!(bc.validate().is_ok());
+        let mut held = 0;
+        for x in 0..grid.dims[0] {
+            for y in 0..grid.dims[1] {
+                for z in 0..grid.dims[2] {
+                    let p = grid.node_pos([x, y, z]);
+                    let v = DVec3::new(0.3, -1.0, 0.2);
+                    let k = (p / 0.05).round();
+                    let inside = k.x == 3.0 && (k.y == 4.0 || k.y == 5.0) && k.z == 5.0;
+                    let out = bc.apply(&grid, p, v);
+                    assert_eq!(out, if inside { DVec3::ZERO } else { v }, "{p}");
+                    held += usize::from(inside);
+                }
+            }
+        }
+        assert_eq!(held, 2);
+        let c = &bc.colliders[0];
+        assert!(c.reaches(DVec3::splat(0.1), DVec3::splat(0.3), 0.05));
+        assert!(!c.reaches(DVec3::splat(0.3), DVec3::splat(0.45), 0.05));
+        assert!(anchor(&[], 0.0).validate().is_err());
     }
 }

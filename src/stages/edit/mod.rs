@@ -245,7 +245,7 @@ pub struct Edit;
 impl TypedStage for Edit {
     type Params = EditParams;
     const KIND: &'static str = "edit";
-    const VERSION: u32 = 2;
+    const VERSION: u32 = 3;
     const DESCRIPTION: &'static str = "Simulate new motion of the learned scene (forces, impulses, material, gravity and boundary changes) and render it as PNG frames, GIFs, MP4s and per-frame 3DGS PLYs";
     const UPSTREAM: &'static [&'static str] = &["ingest", "init", "warmup", "velocity", "material"];
     const NAMED_INSTANCES: bool = true;
@@ -688,6 +688,15 @@ pub fn run(
         frames,
         label: PathBuf::from(&location),
         splat_filter: scene.splat_filter,
+        anchor: (p.anchor && !fixed.is_empty()).then(|| {
+            std::sync::Arc::new(
+                fixed
+                    .position
+                    .iter()
+                    .map(|q| q.map(f64::from))
+                    .collect::<Vec<_>>(),
+            )
+        }),
     };
     let mut object = Object::build(&moving, &settings).map_err(sim_error)?;
     if let Some(moduli) = field_moduli(scene, &p.material, &material, &object)

@@ -46,6 +46,13 @@ pub struct EditParams {
     /// Write every frame's Gaussians as a 3DGS PLY (`splats/splats_NNNN.ply`).
     #[serde(default = "yes")]
     pub splats: bool,
+    /// Hold the simulated part where it meets Gaussians that do not simulate (a PhysDreamer
+    /// scene's moving part on its still object): the grid nodes within a cell of every still
+    /// Gaussian that has a simulated particle within two cells are held still, as
+    /// PhysDreamer freezes the grid next to the still points. No effect when every Gaussian
+    /// simulates.
+    #[serde(default = "yes")]
+    pub anchor: bool,
     /// Grid cells across the object's largest extent; default: the `material` stage's (24
     /// without one).
     #[serde(default)]
