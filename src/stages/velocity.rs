@@ -230,7 +230,7 @@ impl VelocityResult {
 impl TypedStage for Velocity {
     type Params = VelocityParams;
     const KIND: &'static str = "velocity";
-    const VERSION: u32 = 6;
+    const VERSION: u32 = 7;
     const DESCRIPTION: &'static str = "Learn the initial velocity from the first frames (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup"];
 
@@ -317,13 +317,37 @@ impl TypedStage for Velocity {
 
     fn run(&self, p: &VelocityParams, ctx: &mut StageContext<'_>) -> Result<(), StageError> {
         let inputs = Inputs::load(ctx)?;
-        let last = p.frames.saturating_sub(1).min(inputs.last_frame());
+        let mut last = p.frames.saturating_sub(1).min(inputs.last_frame());
         if last == 0 {
             return Err(StageError::failed(FitError::Invalid(format!(
                 "stages.{}.frames = {}: the capture has no frame after frame 0",
                 ctx.name, p.frames
             ))));
         }
+        // The first estimate, from the masks' hulls, over the frames still in free flight: a
+        // fast object that lands within the stage's frames leaves the ballistic path, and the
+        // frames after that say how it landed (the material, unknown here), not how it was
+        // thrown; the fit below stops there too.
+        let g = DVec3::from_array(ctx.scene.gravity);
+        let start_v = match p.init {
+            VelocityInit::Zero => DVec3::ZERO,
+            VelocityInit::Hull => {
+                let frames: Vec<u16> = (0..=last).collect();
+                let (centres, voxel) =
+                    track::hull_centres(&inputs.ingest_dir, &inputs.frames.rows, &frames)
+                        .map_err(StageError::failed)?;
+                let k = track::free_flight(&centres, g, 2.0 * voxel);
+                if k >= 2 && k < centres.len() {
+                    let free = (k - 1) as u16;
+                    ctx.progress.log(&format!(
+                        "velocity: the object leaves free flight after frame {free} (its hull's centre is off the ballistic path of frames 0..={free} by more than two voxels, {:.1} mm): fitting frames 1..={free}",
+                        2e3 * voxel
+                    ));
+                    last = last.min(free.max(1));
+                }
+                track::fit_velocity(&centres[..k], g).unwrap_or(DVec3::ZERO)
+            }
+        };
         let material = MaterialValues::guess(inputs.family, ctx.scene.density, &p.guess);
         check_family_guess(&material, &p.guess, ctx.name)?;
         let object = inputs.object(ctx, &material, p.cells)?;
@@ -345,17 +369,6 @@ impl TypedStage for Velocity {
             targets.len()
         ));
 
-        // Where the descent starts.
-        let g = DVec3::from_array(ctx.scene.gravity);
-        let start_v = match p.init {
-            VelocityInit::Zero => DVec3::ZERO,
-            VelocityInit::Hull => {
-                let frames: Vec<u16> = (0..=last).collect();
-                let centres = track::hull_centres(&inputs.ingest_dir, &inputs.frames.rows, &frames)
-                    .map_err(StageError::failed)?;
-                track::fit_velocity(&centres, g).unwrap_or(DVec3::ZERO)
-            }
-        };
         let dims = match p.model {
             VelocityModel::Translation => 3,
             VelocityModel::Rigid | VelocityModel::Field | VelocityModel::Auto => 6,
