@@ -23,12 +23,11 @@ use anyhow::{Context, Result, bail};
 use glam::DVec3;
 use pipe::io::{pacnerf, ply};
 use pipe::pipeline::progress::{Mode, Reporter};
-use pipe::scene::camera::Camera;
 use serde_json::json;
 
 use crate::two_material::cameras::Ring;
 use crate::two_material::render::Look;
-use crate::two_material::{FOV_X_DEG, FRAME_DT, bar::albedo, check_in_view, to_f32, write_rgb};
+use crate::two_material::{FOV_X_DEG, FRAME_DT, bar::albedo, render_frames, to_f32};
 
 /// The object's shape.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -319,37 +318,7 @@ fn write_scene(args: &Args) -> Result<()> {
     };
     let albedos: Vec<[f64; 3]> = rest.iter().map(|p| albedo(*p)).collect();
     let radius = args.sphere_radius * args.spacing;
-    for img in &scene.images {
-        let cam = Camera::new(&img.world_from_camera, img.intrinsics, args.size, args.size);
-        check_in_view(
-            &cam,
-            &frames[img.frame as usize],
-            radius,
-            img.view,
-            img.frame,
-        )?;
-    }
-    for (view, plate_entry) in &scene.plates {
-        let cam = Camera::new(
-            &plate_entry.world_from_camera,
-            plate_entry.intrinsics,
-            args.size,
-            args.size,
-        );
-        let plate = look.plate(&cam);
-        write_rgb(&plate_entry.path, args.size, &look.resolve(&plate).rgb)?;
-        for img in scene.images.iter().filter(|i| i.view == *view) {
-            let x = &frames[img.frame as usize];
-            let frame = look.resolve(&look.spheres(&cam, &plate, x, radius, &albedos));
-            write_rgb(&img.path, args.size, &frame.rgb)?;
-            pipe::io::image::write_gray8(
-                &pacnerf::gt_mask_path(dst, *view, img.frame),
-                args.size,
-                args.size,
-                &frame.alpha,
-            )?;
-        }
-    }
+    render_frames(dst, &scene, args.size, &frames, radius, &albedos, &look)?;
     let params = params_json(args, &rest, &frames, &summary, &ring);
     let path = dst.join("gt/params.json");
     std::fs::write(&path, serde_json::to_string_pretty(&params)?)

@@ -232,33 +232,7 @@ fn write_scene(args: &Args) -> Result<()> {
     };
     let albedo: Vec<[f64; 3]> = bar.rest.iter().map(|p| bar::albedo(*p)).collect();
     let radius = args.sphere_radius * args.spacing;
-    for img in &scene.images {
-        let cam = Camera::new(&img.world_from_camera, img.intrinsics, args.size, args.size);
-        check_in_view(
-            &cam,
-            &traj.frames[img.frame as usize],
-            radius,
-            img.view,
-            img.frame,
-        )?;
-    }
-    for (view, plate_entry) in &scene.plates {
-        let cam = Camera::new(
-            &plate_entry.world_from_camera,
-            plate_entry.intrinsics,
-            args.size,
-            args.size,
-        );
-        let plate = look.plate(&cam);
-        write_rgb(&plate_entry.path, args.size, &look.resolve(&plate).rgb)?;
-        for img in scene.images.iter().filter(|i| i.view == *view) {
-            let x = &traj.frames[img.frame as usize];
-            let frame = look.resolve(&look.spheres(&cam, &plate, x, radius, &albedo));
-            write_rgb(&img.path, args.size, &frame.rgb)?;
-            let mask = pacnerf::gt_mask_path(dst, *view, img.frame);
-            pimage::write_gray8(&mask, args.size, args.size, &frame.alpha)?;
-        }
-    }
+    render_frames(dst, &scene, args.size, &traj.frames, radius, &albedo, &look)?;
     for (f, x) in traj.frames.iter().enumerate() {
         ply::write_points(&dst.join(format!("gt/particles/{f}.ply")), &to_f32(x), None)?;
     }
@@ -325,7 +299,50 @@ fn write_scene(args: &Args) -> Result<()> {
     Ok(())
 }
 
-pub(crate) fn write_rgb(path: &Path, size: u32, rgb: &[u8]) -> Result<()> {
+/// Draws every image of `scene` (a PAC-NeRF scene just written to `dst`, `size`² pixels):
+/// each camera's plate, then the spheres of `frames[f]` (radius m, colours `albedo`) over it
+/// as `data/r_<cam>_<f>.png` with their coverage as `gt/masks/m_<cam>_<f>.png`. Refuses a
+/// frame whose spheres leave a camera's image.
+pub(crate) fn render_frames(
+    dst: &Path,
+    scene: &pacnerf::PacnerfScene,
+    size: u32,
+    frames: &[Vec<DVec3>],
+    radius: f64,
+    albedo: &[[f64; 3]],
+    look: &Look,
+) -> Result<()> {
+    for img in &scene.images {
+        let cam = Camera::new(&img.world_from_camera, img.intrinsics, size, size);
+        check_in_view(
+            &cam,
+            &frames[img.frame as usize],
+            radius,
+            img.view,
+            img.frame,
+        )?;
+    }
+    for (view, plate_entry) in &scene.plates {
+        let cam = Camera::new(
+            &plate_entry.world_from_camera,
+            plate_entry.intrinsics,
+            size,
+            size,
+        );
+        let plate = look.plate(&cam);
+        write_rgb(&plate_entry.path, size, &look.resolve(&plate).rgb)?;
+        for img in scene.images.iter().filter(|i| i.view == *view) {
+            let x = &frames[img.frame as usize];
+            let frame = look.resolve(&look.spheres(&cam, &plate, x, radius, albedo));
+            write_rgb(&img.path, size, &frame.rgb)?;
+            let mask = pacnerf::gt_mask_path(dst, *view, img.frame);
+            pimage::write_gray8(&mask, size, size, &frame.alpha)?;
+        }
+    }
+    Ok(())
+}
+
+fn write_rgb(path: &Path, size: u32, rgb: &[u8]) -> Result<()> {
     pimage::write_rgb8(
         path,
         &pimage::Rgb8 {
@@ -342,13 +359,7 @@ pub(crate) fn to_f32(x: &[DVec3]) -> Vec<[f32; 3]> {
 }
 
 /// Every sphere lies in front of the camera and inside its image.
-pub(crate) fn check_in_view(
-    cam: &Camera,
-    x: &[DVec3],
-    radius: f64,
-    view: u16,
-    frame: i32,
-) -> Result<()> {
+fn check_in_view(cam: &Camera, x: &[DVec3], radius: f64, view: u16, frame: i32) -> Result<()> {
     for (i, p) in x.iter().enumerate() {
         let inside = cam.project(*p).is_some_and(|(u, v, z)| {
             let r = cam.fx * radius / z;
