@@ -71,6 +71,14 @@ pub fn stalled(losses: &[f64]) -> bool {
     }
 }
 
+/// The log line of a `what` fit that [`stalled`] after `epoch` (1-based) of `epochs`.
+pub fn stall_note(what: &str, epoch: u32, epochs: u32) -> String {
+    format!(
+        "{what}: stopped after epoch {epoch} of {epochs}: the loss fell less than {} % over {STALL_WINDOW} epochs",
+        STALL_FRACTION * 100.0
+    )
+}
+
 /// `a + t·(b − a)`, element by element.
 pub fn lerp(a: &[f64], b: &[f64], t: f64) -> Vec<f64> {
     a.iter().zip(b).map(|(a, b)| a + t * (b - a)).collect()

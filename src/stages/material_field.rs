@@ -307,11 +307,10 @@ pub(crate) fn fit(
         if p.field.truncate == Truncate::None {
             losses.push(loss_after.unwrap_or(out.loss()));
             if stalled(&losses) {
-                ctx.progress.log(&format!(
-                    "material field: stopped after epoch {} of {epochs}: the loss fell less than {} % over {} epochs",
+                ctx.progress.log(&crate::physics::step_search::stall_note(
+                    "material field",
                     epoch + 1,
-                    crate::physics::step_search::STALL_FRACTION * 100.0,
-                    crate::physics::step_search::STALL_WINDOW
+                    epochs,
                 ));
                 break;
             }

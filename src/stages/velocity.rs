@@ -827,11 +827,10 @@ fn fit_velocity_field(
         ctx.progress.inc(1);
         losses.push(found.map_or(out.loss(), |(_, l)| l));
         if stalled(&losses) {
-            ctx.progress.log(&format!(
-                "velocity field: stopped after epoch {} of {epochs}: the loss fell less than {} % over {} epochs",
+            ctx.progress.log(&crate::physics::step_search::stall_note(
+                "velocity field",
                 epoch + 1,
-                crate::physics::step_search::STALL_FRACTION * 100.0,
-                crate::physics::step_search::STALL_WINDOW
+                epochs,
             ));
             break;
         }
