@@ -121,6 +121,15 @@ pub struct Evaluation {
     /// last frame.
     pub chamfer_per_frame_m: Vec<f64>,
     pub chamfer_last_frame_m: Option<f64>,
+    /// Mean distance (m) between each simulated particle and the true particle nearest to it
+    /// at frame 0, per frame and at the last frame: the true particles are numbered alike in
+    /// every frame, so this follows material points, where Chamfer sees only the shape (a
+    /// torus spinning about its axis, or a texture sliding over an unchanged outline, keep
+    /// their Chamfer distance). Empty when the truth's particle count changes between frames.
+    #[serde(default)]
+    pub tracking_per_frame_m: Vec<f64>,
+    #[serde(default)]
+    pub tracking_last_frame_m: Option<f64>,
     /// The learned E and ν particle by particle (a field's, or the global values everywhere)
     /// against the scene's per-particle truth (`gt/material_particles.ply`), per part when it
     /// has few distinct values.
@@ -140,7 +149,7 @@ pub struct Evaluate;
 impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
-    const VERSION: u32 = 3;
+    const VERSION: u32 = 4;
     const DESCRIPTION: &'static str = "Re-simulate the learned scene and score it in every view and frame (PSNR, SSIM, mask IoU; parameter and Chamfer errors against ground truth)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "init", "warmup", "velocity", "material"];
 
@@ -296,6 +305,7 @@ impl TypedStage for Evaluate {
             renders: p.renders,
             scores: Vec::new(),
             chamfer: Vec::new(),
+            tracking: Tracking::default(),
             gt_dir: &gt_dir,
             gif: BTreeMap::new(),
         };
@@ -339,6 +349,7 @@ impl TypedStage for Evaluate {
         }
         let scores = eval.scores.clone();
         let chamfer = eval.chamfer.clone();
+        let tracking = eval.tracking.per_frame.clone();
         for s in &scores {
             for (metric, value) in [
                 ("psnr", s.psnr),
@@ -355,14 +366,16 @@ impl TypedStage for Evaluate {
                 });
             }
         }
-        for (f, c) in chamfer.iter().enumerate() {
-            ctx.metric(MetricRow {
-                epoch: None,
-                view: None,
-                frame: Some(f as u16),
-                metric: "chamfer_m".into(),
-                value: *c,
-            });
+        for (name, values) in [("chamfer_m", &chamfer), ("tracking_m", &tracking)] {
+            for (f, c) in values.iter().enumerate() {
+                ctx.metric(MetricRow {
+                    epoch: None,
+                    view: None,
+                    frame: Some(f as u16),
+                    metric: name.into(),
+                    value: *c,
+                });
+            }
         }
         let mean = |it: &mut dyn Iterator<Item = f64>| {
             let v: Vec<f64> = it.collect();
@@ -437,6 +450,8 @@ impl TypedStage for Evaluate {
             errors,
             chamfer_last_frame_m: chamfer.last().copied().filter(|c| c.is_finite()),
             chamfer_per_frame_m: chamfer,
+            tracking_last_frame_m: tracking.last().copied().filter(|c| c.is_finite()),
+            tracking_per_frame_m: tracking,
             material_truth: truth_errors,
             stage_wall_s,
             frames: last,
@@ -447,6 +462,7 @@ impl TypedStage for Evaluate {
             ("test_ssim_mean", result.test_ssim_mean),
             ("train_psnr_mean", result.train_psnr_mean),
             ("chamfer_last_frame_m", result.chamfer_last_frame_m),
+            ("tracking_last_frame_m", result.tracking_last_frame_m),
         ] {
             if let Some(value) = value {
                 ctx.metric(MetricRow {
@@ -566,6 +582,9 @@ fn summary(e: &Evaluation) -> String {
     if let Some(c) = e.chamfer_last_frame_m {
         s.push_str(&format!("; Chamfer at the last frame {:.2} mm", c * 1e3));
     }
+    if let Some(c) = e.tracking_last_frame_m {
+        s.push_str(&format!(", material points {:.2} mm off", c * 1e3));
+    }
     if let Some(err) = &e.errors {
         let parts: Vec<String> = err.iter().map(|(k, v)| format!("{k} {v:.3}")).collect();
         s.push_str(&format!("; errors: {}", parts.join(", ")));
@@ -599,6 +618,7 @@ struct Scorer<'a> {
     renders: bool,
     scores: Vec<ViewScore>,
     chamfer: Vec<f64>,
+    tracking: Tracking,
     gt_dir: &'a Path,
     /// Per written view, the GIF frames (captured | ours | error).
     gif: BTreeMap<u16, Vec<Rgb8>>,
@@ -711,20 +731,106 @@ impl FrameLoss for Scorer<'_> {
         }
         // The ground truth's particles of this frame, when the scene has them.
         let gt = self.gt_dir.join(format!("{frame}.ply"));
-        let chamfer = match crate::io::ply::read_points(&gt) {
-            Ok(cloud) => {
-                let truth: Vec<DVec3> = cloud
-                    .positions
-                    .iter()
-                    .map(|p| DVec3::new(p[0].into(), p[1].into(), p[2].into()))
-                    .collect();
-                crate::scene::neighbors::mean_chamfer(&state.x, &truth).unwrap_or(f64::NAN)
-            }
-            Err(_) => f64::NAN,
-        };
+        let truth: Option<Vec<DVec3>> = crate::io::ply::read_points(&gt).ok().map(|cloud| {
+            cloud
+                .positions
+                .iter()
+                .map(|p| DVec3::new(p[0].into(), p[1].into(), p[2].into()))
+                .collect()
+        });
+        let chamfer = truth.as_ref().map_or(f64::NAN, |truth| {
+            crate::scene::neighbors::mean_chamfer(&state.x, truth).unwrap_or(f64::NAN)
+        });
         if gt.is_file() || !self.chamfer.is_empty() {
             self.chamfer.push(chamfer);
+            self.tracking.frame(&state.x, truth.as_deref());
         }
         Ok(0.0)
+    }
+}
+
+/// The tracking error ([`Evaluation::tracking_per_frame_m`]): each simulated particle paired
+/// with the true particle nearest to it at the first frame scored.
+#[derive(Debug, Default)]
+struct Tracking {
+    /// Simulated particle → true particle index, and the truth's particle count.
+    pairs: Option<(Vec<usize>, usize)>,
+    per_frame: Vec<f64>,
+}
+
+impl Tracking {
+    /// Scores one frame (`NaN` without a truth, or when its count differs from the first's).
+    fn frame(&mut self, ours: &[DVec3], truth: Option<&[DVec3]>) {
+        let Some(truth) = truth.filter(|t| !t.is_empty() && !ours.is_empty()) else {
+            self.per_frame.push(f64::NAN);
+            return;
+        };
+        if self.pairs.is_none() && self.per_frame.is_empty() {
+            self.pairs = pair_nearest(ours, truth).map(|p| (p, truth.len()));
+        }
+        let value = match &self.pairs {
+            Some((pairs, n)) if *n == truth.len() && pairs.len() == ours.len() => {
+                ours.iter()
+                    .zip(pairs)
+                    .map(|(x, &j)| x.distance(truth[j]))
+                    .sum::<f64>()
+                    / ours.len() as f64
+            }
+            _ => f64::NAN,
+        };
+        self.per_frame.push(value);
+    }
+}
+
+/// For each point of `a`, the index of the nearest point of `b`.
+fn pair_nearest(a: &[DVec3], b: &[DVec3]) -> Option<Vec<usize>> {
+    let spacing = crate::scene::neighbors::median_nn_distance(b)?;
+    let grid = crate::scene::neighbors::PointGrid::new(b, spacing.max(1e-6) * 2.0);
+    a.iter()
+        .map(|&q| grid.nearest(q, None).map(|(j, _)| j))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ring(n: usize, turn: f64) -> Vec<DVec3> {
+        (0..n)
+            .map(|k| {
+                let a = std::f64::consts::TAU * k as f64 / n as f64 + turn;
+                DVec3::new(a.cos(), 0.5, a.sin())
+            })
+            .collect()
+    }
+
+    #[test]
+    fn tracking_sees_a_spin_that_chamfer_cannot() {
+        // A ring of 360 points turned by 10° about its axis: the same shape (Chamfer 0), but
+        // every material point moved by 2 sin(5°) ≈ 0.174 m.
+        let (rest, turned) = (ring(360, 0.0), ring(360, 10f64.to_radians()));
+        let chamfer = crate::scene::neighbors::mean_chamfer(&turned, &turned).unwrap();
+        assert!(chamfer < 1e-12);
+        let mut t = Tracking::default();
+        t.frame(&rest, Some(&rest));
+        t.frame(&turned, Some(&turned));
+        // Our particles stayed where they were while the truth turned.
+        t.frame(&rest, Some(&turned));
+        let expected = 2.0 * 5f64.to_radians().sin();
+        assert!(
+            t.per_frame[0] < 1e-12 && t.per_frame[1] < 1e-12,
+            "{:?}",
+            t.per_frame
+        );
+        assert!(
+            (t.per_frame[2] - expected).abs() < 1e-9,
+            "{:?}",
+            t.per_frame
+        );
+        // A frame whose truth has another count cannot be paired, nor one without a truth.
+        t.frame(&rest, Some(&ring(100, 0.0)));
+        t.frame(&rest, None);
+        assert!(t.per_frame[3].is_nan() && t.per_frame[4].is_nan());
+        assert_eq!(t.per_frame.len(), 5);
     }
 }

@@ -88,6 +88,9 @@ fn summary_rows(report: &Report) -> Vec<(String, Vec<String>)> {
         row("Chamfer distance, last frame (mm)", &|s| {
             text::opt(eval_number(s, "chamfer_last_frame_m").map(|m| m * 1e3))
         }),
+        row("material points off, last frame (mm)", &|s| {
+            text::opt(eval_number(s, "tracking_last_frame_m").map(|m| m * 1e3))
+        }),
     ];
     let mut names: Vec<String> = Vec::new();
     for s in scenes {

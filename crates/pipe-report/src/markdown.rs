@@ -182,6 +182,10 @@ pub fn document(report: &Report) -> String {
         text::opt(eval_number(s, "chamfer_last_frame_m").map(|m| m * 1e3))
     });
     row(&mut out, &cells);
+    let cells = line("material points off, last frame (mm)", &|s| {
+        text::opt(eval_number(s, "tracking_last_frame_m").map(|m| m * 1e3))
+    });
+    row(&mut out, &cells);
     let cells = line("wall time of all stages (s)", &|s| {
         text::seconds(Some(s.total_wall_s))
     });

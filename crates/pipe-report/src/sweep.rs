@@ -15,7 +15,7 @@ use crate::plot::{Figure, Series};
 use crate::text::{self, md};
 
 /// `evaluation.json` fields that become columns.
-const SCORES: [&str; 8] = [
+const SCORES: [&str; 9] = [
     "test_psnr_mean",
     "test_ssim_mean",
     "test_psnr_first_frame",
@@ -24,6 +24,7 @@ const SCORES: [&str; 8] = [
     "test_psnr_mask_mean",
     "test_mask_iou_mean",
     "chamfer_last_frame_m",
+    "tracking_last_frame_m",
 ];
 
 fn score(e: &Option<Value>, path: &[&str]) -> Option<f64> {
