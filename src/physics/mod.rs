@@ -8,6 +8,7 @@
 pub mod adam;
 pub mod descent;
 pub mod fit;
+pub mod free_flight;
 pub mod material_field;
 pub mod material_truth;
 pub mod object;

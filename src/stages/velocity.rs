@@ -20,6 +20,7 @@ use serde_json::{Value, json};
 
 use crate::physics::descent::LineSearch;
 use crate::physics::fit::{FitError, Inputs, PrecisionParam, RigidVelocity};
+use crate::physics::free_flight;
 use crate::physics::material_field::percentiles;
 use crate::physics::object::Object;
 use crate::physics::params::{MaterialValues, Param};
@@ -79,6 +80,12 @@ pub struct VelocityParams {
     /// Where the descent starts.
     #[serde(default)]
     pub init: VelocityInit,
+    /// When the masks' hulls show the object in free flight over every frame fitted (with
+    /// `init: hull`), fit the rigid or translational motion in closed form
+    /// ([`crate::physics::free_flight`]: the body turns and falls as a rigid body, so the fit
+    /// costs the renders only, no simulation); `false` simulates it as the other frames are.
+    #[serde(default = "closed_form")]
+    pub closed_form: bool,
     /// Gradient evaluations (each a rollout over the frames and its adjoint); the descent stops
     /// earlier once it has converged.
     #[serde(default = "epochs")]
@@ -115,6 +122,9 @@ pub struct VelocityParams {
     pub auto: AutoSettings,
 }
 
+fn closed_form() -> bool {
+    true
+}
 fn frames() -> u16 {
     4
 }
@@ -230,7 +240,7 @@ impl VelocityResult {
 impl TypedStage for Velocity {
     type Params = VelocityParams;
     const KIND: &'static str = "velocity";
-    const VERSION: u32 = 7;
+    const VERSION: u32 = 8;
     const DESCRIPTION: &'static str = "Learn the initial velocity from the first frames (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup"];
 
@@ -329,6 +339,7 @@ impl TypedStage for Velocity {
         // frames after that say how it landed (the material, unknown here), not how it was
         // thrown; the fit below stops there too.
         let g = DVec3::from_array(ctx.scene.gravity);
+        let mut in_free_flight = false;
         let start_v = match p.init {
             VelocityInit::Zero => DVec3::ZERO,
             VelocityInit::Hull => {
@@ -345,6 +356,7 @@ impl TypedStage for Velocity {
                     ));
                     last = last.min(free.max(1));
                 }
+                in_free_flight = k >= 2 && usize::from(last) < k;
                 track::fit_velocity(&centres[..k], g).unwrap_or(DVec3::ZERO)
             }
         };
@@ -359,14 +371,27 @@ impl TypedStage for Velocity {
         };
         let fluid = is_fluid(inputs.family);
         let mut loss = ViewsLoss::new(&object, fluid, &targets, weights, inputs.background);
+        let start_motion = RigidVelocity {
+            linear: start_v.to_array(),
+            angular: [0.0; 3],
+            centre,
+        };
+        let closed = p.closed_form
+            && in_free_flight
+            && free_flight::touches_nothing(&object, &start_motion, last);
         ctx.progress.log(&format!(
-            "velocity: {} particles ({} Gaussians, {} fillers; {} floaters dropped), {:.2} kg, frames 1..={last}, {} views",
+            "velocity: {} particles ({} Gaussians, {} fillers; {} floaters dropped), {:.2} kg, frames 1..={last}, {} views{}",
             object.particles(),
             object.rendered(),
             object.particles() - object.rendered(),
             object.floaters,
             object.mass(),
-            targets.len()
+            targets.len(),
+            if closed {
+                "; in free flight: the rigid motion in closed form"
+            } else {
+                ""
+            }
         ));
 
         let dims = match p.model {
@@ -436,11 +461,17 @@ impl TypedStage for Velocity {
                 interrupt: Some(interrupt),
                 moduli: None,
             };
-            let out = rollout
-                .run(&mut loss, Wants::Velocity)
-                .map_err(|e| fail(epoch, e))?;
-            let gp = out.v0.as_ref().expect("a velocity rollout gives ∂L/∂v0");
-            let (gv, gw) = field.gradient(&object, gp);
+            let (l, (gv, gw)) = if closed {
+                let (l, g) = free_flight::run(&object, &field, last, fluid, &mut loss, true)
+                    .map_err(|e| fail(epoch, e))?;
+                (l, g.expect("a gradient was asked for"))
+            } else {
+                let out = rollout
+                    .run(&mut loss, Wants::Velocity)
+                    .map_err(|e| fail(epoch, e))?;
+                let gp = out.v0.as_ref().expect("a velocity rollout gives ∂L/∂v0");
+                (out.loss(), field.gradient(&object, gp))
+            };
             let mut grad: Vec<f64> = gv.to_array().to_vec();
             if dims == 6 {
                 grad.extend((gw / radius).to_array());
@@ -451,7 +482,6 @@ impl TypedStage for Velocity {
                     message: "non-finite gradient of the initial velocity".into(),
                 }));
             }
-            let l = out.loss();
             let mut metric = |name: &str, value: f64| {
                 ctx.metric(MetricRow {
                     epoch: Some(epoch),
@@ -470,6 +500,17 @@ impl TypedStage for Velocity {
             }
             let it = search
                 .iterate(&x, l, &grad, |trial| {
+                    if closed {
+                        return free_flight::run(
+                            &object,
+                            &rigid(trial),
+                            last,
+                            fluid,
+                            &mut loss,
+                            false,
+                        )
+                        .map(|(l, _)| l);
+                    }
                     let v0 = rigid(trial).field(&object);
                     Rollout { v0: &v0, ..rollout }
                         .run(&mut loss, Wants::Loss)
@@ -497,8 +538,19 @@ impl TypedStage for Velocity {
                 },
             )?;
         }
+        if closed && !free_flight::touches_nothing(&object, &rigid(&x), last) {
+            ctx.progress.log(&format!(
+                "velocity: warning: the learned motion comes within two grid cells of a boundary by frame {last}, which the closed form does not see; set stages.{}.closed_form: false to simulate it",
+                ctx.name
+            ));
+        }
         // The loss at the start and at the learned velocity.
         let eval = |x: &[f64], loss: &mut ViewsLoss<'_>| -> Result<f64, StageError> {
+            if closed {
+                return free_flight::run(&object, &rigid(x), last, fluid, loss, false)
+                    .map(|(l, _)| l)
+                    .map_err(|e| fail(p.epochs, e));
+            }
             let v0 = rigid(x).field(&object);
             Rollout {
                 object: &object,
@@ -559,7 +611,17 @@ impl TypedStage for Velocity {
                     "velocity auto: the field is fitted on views {fit_views:?} and compared with the rigid motion on views {held:?}"
                 ));
                 let f = fit_field(ctx, &mut fit_loss)?;
-                let lg = eval(&x, &mut held_loss)?;
+                // Both simulated, so the comparison is between the two motions only.
+                let lg = run_loss(
+                    &object,
+                    &material,
+                    &field.field(&object),
+                    last,
+                    precision,
+                    interrupt,
+                    &mut held_loss,
+                )
+                .map_err(|e| fail(p.epochs, e))?;
                 let lf = run_loss(
                     &object,
                     &material,
@@ -607,10 +669,14 @@ impl TypedStage for Velocity {
                 )
             }
         };
-        let loss_final = run_loss(
-            &object, &material, &v0, last, precision, interrupt, &mut loss,
-        )
-        .map_err(|e| fail(p.epochs, e))?;
+        let loss_final = if learned_field.is_none() {
+            loss_rigid
+        } else {
+            run_loss(
+                &object, &material, &v0, last, precision, interrupt, &mut loss,
+            )
+            .map_err(|e| fail(p.epochs, e))?
+        };
         let mass = &object.body.material.mass;
         let mean_v =
             v0.iter().zip(mass).map(|(v, m)| *v * *m).sum::<DVec3>() / mass.iter().sum::<f64>();
