@@ -249,6 +249,54 @@ impl LineSearch {
     }
 }
 
+/// Compass probes about a point where the descent found no lower loss: each coordinate in
+/// `axes` moved by `−step` and `+step` alone (Kolda, Lewis & Torczon 2003, *Optimization by
+/// direct search*, §3). A gradient sees only its neighbourhood; on a plateau (a plasticine's
+/// Young's modulus far above its yield stress moves the object as a rigid–plastic body, so the
+/// loss no longer depends on it) the descent stops although a decade away the loss is lower.
+/// On each axis the step down comes first and the step up only when it did not lower the loss.
+/// Returns the lowest probe and its loss, when that loss is below `l0` by more than `rel` of
+/// it, and the count of losses evaluated.
+pub fn probe<E>(
+    u: &[f64],
+    l0: f64,
+    axes: &[usize],
+    step: f64,
+    rel: f64,
+    mut loss: impl FnMut(&[f64]) -> Result<f64, E>,
+) -> Result<Probe, E> {
+    let mut best: Option<(Vec<f64>, f64)> = None;
+    let mut evaluated = 0;
+    let enough = l0 * (1.0 - rel);
+    for &k in axes.iter().filter(|&&k| k < u.len()) {
+        for sign in [-1.0, 1.0] {
+            let mut at = u.to_vec();
+            at[k] += sign * step;
+            let l = loss(&at)?;
+            evaluated += 1;
+            let lowest = best.as_ref().map_or(enough, |(_, b)| *b);
+            if l.is_finite() && l < lowest {
+                best = Some((at, l));
+            }
+            if l.is_finite() && l < enough {
+                // The step down lowered the loss: the step up (a stiffer, costlier rollout
+                // for a modulus) is not tried on this axis.
+                break;
+            }
+        }
+    }
+    Ok(Probe { best, evaluated })
+}
+
+/// What [`probe`] found.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Probe {
+    /// The lowest probe and its loss, when it lowers the loss enough.
+    pub best: Option<(Vec<f64>, f64)>,
+    /// Losses evaluated.
+    pub evaluated: usize,
+}
+
 /// How a backtracking search ended.
 enum Search {
     Accepted(Iteration),
@@ -371,6 +419,43 @@ mod tests {
             "the stale estimate is dropped"
         );
         assert!(!ls.converged(), "{ls:?}");
+    }
+
+    #[test]
+    fn a_probe_leaves_a_plateau_a_gradient_cannot() {
+        // Flat for u0 > 1 (zero gradient), a valley at u0 = −0.2: from u0 = 2 a probe one unit
+        // down sees nothing, from 1.5 it reaches the slope.
+        let f = |u: &[f64]| (u[0].min(1.0) + 0.2).powi(2) + (u[1] - 0.5).powi(2);
+        let Probe {
+            best: none,
+            evaluated: n,
+        } = probe(&[2.5, 0.5], f(&[2.5, 0.5]), &[0, 1], 1.0, 1e-3, |x| {
+            Ok::<f64, ()>(f(x))
+        })
+        .unwrap();
+        assert!(none.is_none(), "{none:?}");
+        assert_eq!(n, 4);
+        let Probe {
+            best: some,
+            evaluated: n,
+        } = probe(&[1.5, 0.5], f(&[1.5, 0.5]), &[0], 1.0, 1e-3, |x| {
+            Ok::<f64, ()>(f(x))
+        })
+        .unwrap();
+        let (at, l) = some.expect("the step down lowers the loss");
+        assert_eq!(at, vec![0.5, 0.5]);
+        assert_eq!(
+            n, 1,
+            "the step up is not tried once the step down lowered the loss"
+        );
+        assert!(l < f(&[1.5, 0.5]));
+        // NaN losses and axes out of range are skipped, never chosen.
+        let Probe {
+            best: nan,
+            evaluated: n,
+        } = probe(&[0.0], 1.0, &[0, 3], 1.0, 0.0, |_| Ok::<f64, ()>(f64::NAN)).unwrap();
+        assert!(nan.is_none());
+        assert_eq!(n, 2);
     }
 
     #[test]

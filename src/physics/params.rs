@@ -142,6 +142,12 @@ impl Param {
         }
     }
 
+    /// Whether the optimiser steps it in decades (`log10`): the moduli, yield stress and
+    /// viscosities, not the bounded ratios.
+    pub fn log_scaled(self) -> bool {
+        !matches!(self, Param::Nu | Param::FrictionAngle)
+    }
+
     /// The optimiser's coordinate of a value.
     pub fn encode(self, value: f64) -> f64 {
         match self {

@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
 use crate::physics::adam::{Adam, AdamConfig, decayed};
-use crate::physics::descent::LineSearch;
+use crate::physics::descent::{Iteration, LineSearch, Probe, probe};
 use crate::physics::fit::{FitError, Inputs, PrecisionParam};
 use crate::physics::material_field::{FieldSettings, colour_of, percentiles, write_weights};
 use crate::physics::object::sim_yaml;
@@ -100,6 +100,14 @@ pub struct MaterialParams {
     /// The line search's smallest step (convergence), Adam's rate at the end.
     #[serde(default = "lr_final")]
     pub lr_final: f64,
+    /// Compass probes (decades) where the line search finds no lower loss: each learned
+    /// modulus, yield stress and viscosity moved alone by this many decades down (and up when
+    /// down does not lower the loss), then by half as many, and the descent goes on from the
+    /// lowest probe that lowers the loss (0: stop there). A
+    /// plasticine whose E is far above its yield stress moves as a rigid–plastic body: the
+    /// loss no longer depends on E, and a gradient cannot leave that plateau.
+    #[serde(default = "probe_decades")]
+    pub probe: f64,
     /// How far back a frame's loss is differentiated.
     #[serde(default)]
     pub truncate: Truncate,
@@ -141,6 +149,11 @@ fn lr_final() -> f64 {
 fn cells() -> f64 {
     24.0
 }
+fn probe_decades() -> f64 {
+    1.0
+}
+/// A probe is taken when it lowers the loss by more than this fraction (the stall rule's).
+const PROBE_GAIN: f64 = 1e-3;
 fn lambda() -> f64 {
     0.1
 }
@@ -238,7 +251,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 9;
+    const VERSION: u32 = 10;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 
@@ -275,7 +288,7 @@ impl TypedStage for MaterialStage {
         if p.epochs == 0 {
             return bad("epochs", "must be at least 1".into());
         }
-        for (name, v) in [("lr", p.lr), ("lr_final", p.lr_final)] {
+        for (name, v) in [("lr", p.lr), ("lr_final", p.lr_final), ("probe", p.probe)] {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(name, format!("must be finite and >= 0, found {v}"));
             }
@@ -494,6 +507,7 @@ impl TypedStage for MaterialStage {
             };
             let mut taken = None;
             let mut full_gradient = false;
+            let mut probes = 0;
             let out = match (p.optimizer, p.truncate) {
                 (Optimizer::LineSearch, truncate) => {
                     let gradient_of = |out: &crate::physics::rollout::Outcome| {
@@ -539,6 +553,49 @@ impl TypedStage for MaterialStage {
                             .iterate(&u, full.loss(), &g, |t| trial_loss(t, &mut loss))
                             .map_err(|e| fail(epoch, e))?;
                         full_gradient = true;
+                    }
+                    if it.step == 0.0 && p.probe > 0.0 {
+                        let axes: Vec<usize> = learned
+                            .iter()
+                            .enumerate()
+                            .filter(|(_, q)| q.log_scaled())
+                            .map(|(k, _)| k)
+                            .collect();
+                        // Compass search: the probe's length, then half of it.
+                        for size in [p.probe, 0.5 * p.probe] {
+                            let Probe { best, evaluated } = probe(
+                                &u,
+                                it.loss,
+                                &axes,
+                                size,
+                                PROBE_GAIN,
+                                |t| trial_loss(t, &mut loss),
+                            )
+                            .map_err(|e| fail(epoch, e))?;
+                            probes += evaluated;
+                            let Some((at, l)) = best else { continue };
+                            ctx.progress.log(&format!(
+                                "    no step lowered the loss {:.5}; a probe {size} decade(s) away did: {:.5} at {}",
+                                it.loss,
+                                l,
+                                learned
+                                    .iter()
+                                    .zip(&at)
+                                    .map(|(q, u)| format!("{} {:.4e}", q.name(), q.decode(*u)))
+                                    .collect::<Vec<_>>()
+                                    .join(", ")
+                            ));
+                            it = Iteration {
+                                u: at,
+                                loss: l,
+                                step: size,
+                                trials: it.trials + probes,
+                            };
+                            // A new start: the curvature and step lengths learned on the
+                            // plateau do not hold there.
+                            search = LineSearch::new(p.lr, p.lr_final, 1.0);
+                            break;
+                        }
                     }
                     converged = search.converged();
                     u = it.u.clone();
@@ -586,6 +643,7 @@ impl TypedStage for MaterialStage {
             metric("substeps", out.substeps.iter().sum::<usize>() as f64);
             if let Some(it) = &taken {
                 metric("full_gradient", f64::from(u8::from(full_gradient)));
+                metric("probes", probes as f64);
                 metric("step", it.step);
                 metric("trials", it.trials as f64);
                 metric("loss_after_step", it.loss);
