@@ -55,22 +55,34 @@ fn exp_and_jacobian(theta: DVec3) -> (DMat3, DMat3) {
     (r, jr)
 }
 
-/// The particles of `object` at frame `frame` of `rigid`'s free flight (m).
-pub fn positions(object: &Object, rigid: &RigidVelocity, frame: u16) -> Vec<DVec3> {
+/// Frame `frame` of `rigid`'s free flight: its time `t` (s), `R(t)`, `J_r(ω t)` and the
+/// centre's position `c + v t + ½ g t²` (m).
+fn pose_at(object: &Object, rigid: &RigidVelocity, frame: u16) -> (f64, DMat3, DMat3, DVec3) {
     let (v, w, c) = (
         DVec3::from_array(rigid.linear),
         DVec3::from_array(rigid.angular),
         DVec3::from_array(rigid.centre),
     );
     let t = f64::from(frame) * object.spec.frame_dt;
-    let (r, _) = exp_and_jacobian(w * t);
+    let (r, jr) = exp_and_jacobian(w * t);
     let shift = c + v * t + 0.5 * DVec3::from_array(object.spec.gravity) * t * t;
+    (t, r, jr, shift)
+}
+
+/// The particles of `object` at frame `frame` of `rigid`'s free flight (m).
+pub fn positions(object: &Object, rigid: &RigidVelocity, frame: u16) -> Vec<DVec3> {
+    let (_, r, _, shift) = pose_at(object, rigid, frame);
+    placed(object, DVec3::from_array(rigid.centre), r, shift)
+}
+
+/// The rest particles turned by `r` about `centre` and moved to `shift` (m).
+fn placed(object: &Object, centre: DVec3, r: DMat3, shift: DVec3) -> Vec<DVec3> {
     object
         .body
         .state
         .x
         .iter()
-        .map(|x| shift + r * (*x - c))
+        .map(|x| shift + r * (*x - centre))
         .collect()
 }
 
@@ -132,18 +144,16 @@ pub fn run(
         DVec3::from_array(rigid.centre),
     );
     let g = DVec3::from_array(object.spec.gravity);
-    let dt = object.spec.frame_dt;
     let rest = &object.body.state.x;
     let n = rest.len();
     let (mut total, mut gv, mut gw) = (0.0, DVec3::ZERO, DVec3::ZERO);
     for frame in 1..=frames {
-        let t = f64::from(frame) * dt;
-        let (r, jr) = exp_and_jacobian(w * t);
-        let shift = c + v * t + 0.5 * g * t * t;
-        let mut state = State::at_rest(rest.iter().map(|x| shift + r * (*x - c)).collect());
+        let (t, r, jr, shift) = pose_at(object, rigid, frame);
+        let mut state = State::at_rest(placed(object, c, r, shift));
+        // The world angular velocity of exp([ω t]×) is ω itself.
         let speed = v + g * t;
         for (p, x) in state.v.iter_mut().zip(&state.x) {
-            *p = speed + (r * w).cross(*x - shift);
+            *p = speed + w.cross(*x - shift);
         }
         if !fluid {
             state.f.iter_mut().for_each(|f| *f = r);

@@ -441,6 +441,15 @@ impl TypedStage for Velocity {
                 }),
             }
         };
+        // The loss of a rigid motion: in closed form in free flight, else simulated.
+        let rigid_loss = |x: &[f64], loss: &mut ViewsLoss<'_>| -> Result<f64, RolloutError> {
+            if closed {
+                free_flight::run(&object, &rigid(x), last, fluid, loss, false).map(|(l, _)| l)
+            } else {
+                let v0 = rigid(x).field(&object);
+                run_loss(&object, &material, &v0, last, precision, interrupt, loss)
+            }
+        };
         ctx.progress.start("epoch", u64::from(p.epochs));
         ctx.progress.inc(u64::from(first_epoch));
         // The loss after each epoch's step: three epochs that gain less than 0.1 % end the fit.
@@ -499,23 +508,7 @@ impl TypedStage for Velocity {
                 metric(name, field.angular[k]);
             }
             let it = search
-                .iterate(&x, l, &grad, |trial| {
-                    if closed {
-                        return free_flight::run(
-                            &object,
-                            &rigid(trial),
-                            last,
-                            fluid,
-                            &mut loss,
-                            false,
-                        )
-                        .map(|(l, _)| l);
-                    }
-                    let v0 = rigid(trial).field(&object);
-                    Rollout { v0: &v0, ..rollout }
-                        .run(&mut loss, Wants::Loss)
-                        .map(|o| o.loss())
-                })
+                .iterate(&x, l, &grad, |trial| rigid_loss(trial, &mut loss))
                 .map_err(|e| fail(epoch, e))?;
             metric("step", it.step);
             metric("trials", it.trials as f64);
@@ -546,24 +539,7 @@ impl TypedStage for Velocity {
         }
         // The loss at the start and at the learned velocity.
         let eval = |x: &[f64], loss: &mut ViewsLoss<'_>| -> Result<f64, StageError> {
-            if closed {
-                return free_flight::run(&object, &rigid(x), last, fluid, loss, false)
-                    .map(|(l, _)| l)
-                    .map_err(|e| fail(p.epochs, e));
-            }
-            let v0 = rigid(x).field(&object);
-            Rollout {
-                object: &object,
-                material: &material,
-                v0: &v0,
-                frames: last,
-                precision,
-                interrupt: Some(interrupt),
-                moduli: None,
-            }
-            .run(loss, Wants::Loss)
-            .map(|o| o.loss())
-            .map_err(|e| fail(p.epochs, e))
+            rigid_loss(x, loss).map_err(|e| fail(p.epochs, e))
         };
         let loss_start = eval(&start, &mut loss)?;
         let loss_rigid = eval(&x, &mut loss)?;
