@@ -7,6 +7,7 @@ pub mod gaussians;
 pub mod metrics;
 pub mod neighbors;
 pub mod parts;
+pub mod shading;
 pub mod splat;
 pub mod table;
 pub mod targets;

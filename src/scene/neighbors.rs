@@ -121,6 +121,29 @@ impl PointGrid {
         }
         best.map(|(j, d2)| (j, d2.sqrt()))
     }
+
+    /// Calls `f` with the index of every point within `radius` (m) of `q` (`q` itself
+    /// included when it is one of the points), cell by cell in a fixed order.
+    pub fn within(&self, q: DVec3, radius: f64, mut f: impl FnMut(usize)) {
+        let reach = (radius / self.h).ceil() as i32;
+        let c = self.cell(q);
+        let r2 = radius * radius;
+        for dx in -reach..=reach {
+            for dy in -reach..=reach {
+                for dz in -reach..=reach {
+                    let Some(&(first, n)) = self.cells.get(&(c + IVec3::new(dx, dy, dz))) else {
+                        continue;
+                    };
+                    let r = first as usize..(first + n) as usize;
+                    for (&j, &p) in self.order[r.clone()].iter().zip(&self.sorted[r]) {
+                        if (p - q).length_squared() <= r2 {
+                            f(j as usize);
+                        }
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// Points of `points` (m) per occupied cell of side `h` (m).

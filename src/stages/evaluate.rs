@@ -28,12 +28,14 @@ use crate::physics::object::Object;
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::pose::Pose;
 use crate::physics::rollout::{FrameLoss, Moduli, Rollout, RolloutError, Wants, is_fluid};
-use crate::pipeline::spec::{Preset, SceneSpec};
+use crate::pipeline::spec::{MaterialFamily, Preset, SceneSpec};
 use crate::pipeline::stage::{
     InputFile, MetricRow, ParamError, StageContext, StageError, TypedStage,
 };
 use crate::scene::frames::{FrameRow, Role};
+use crate::scene::shading::Relight;
 use crate::scene::targets::{self, Target, composite};
+use crate::simulate::splat_deformation;
 use crate::stages::material::{MaterialModel, MaterialResult};
 use crate::stages::velocity::VelocityResult;
 
@@ -64,6 +66,11 @@ pub struct EvaluateParams {
     /// Milliseconds per GIF frame.
     #[serde(default = "gif_ms")]
     pub gif_ms: u32,
+    /// Re-light the deformed Gaussians: the irradiance of each surface normal, fitted to the
+    /// shading the warm-up baked into the colours, stays in the world when the body turns or
+    /// flattens ([`crate::scene::shading`]; solids only).
+    #[serde(default = "yes")]
+    pub relight: bool,
 }
 
 fn yes() -> bool {
@@ -108,6 +115,11 @@ pub struct Evaluation {
     pub test_mask_iou_mean: Option<f64>,
     /// Mean PSNR (dB) of the test views at each frame.
     pub test_psnr_per_frame: Vec<f64>,
+    /// With `relight: true` (solids): the share of the Gaussians' baked log-luminance their
+    /// rest normals explain (the fitted irradiance's hold on the colours); `null` when the
+    /// renders were not re-lit.
+    #[serde(default)]
+    pub relight_explained: Option<f64>,
     /// The learned parameters (`material.json`'s, and the initial velocity, m/s).
     pub learned: BTreeMap<String, f64>,
     pub initial_velocity: [f64; 3],
@@ -149,7 +161,7 @@ pub struct Evaluate;
 impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
-    const VERSION: u32 = 4;
+    const VERSION: u32 = 5;
     const DESCRIPTION: &'static str = "Re-simulate the learned scene and score it in every view and frame (PSNR, SSIM, mask IoU; parameter and Chamfer errors against ground truth)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "init", "warmup", "velocity", "material"];
 
@@ -295,8 +307,26 @@ impl TypedStage for Evaluate {
                 std::fs::create_dir_all(out_dir.join(sub)).map_err(StageError::failed)?;
             }
         }
+        let shading = if p.relight && !is_fluid(family) {
+            Relight::of(
+                &object.body.state.x,
+                &object.body.material.volume,
+                &object.gaussians,
+                object.body.setup.dx,
+            )
+        } else {
+            None
+        };
+        if let Some(r) = &shading {
+            ctx.progress.log(&format!(
+                "evaluate: re-lighting the deformed Gaussians (normals explain {:.0} % of the baked log-luminance)",
+                100.0 * r.shading.explained
+            ));
+        }
         let mut eval = Scorer {
             object: &object,
+            shading: shading.as_ref(),
+            family,
             fluid: is_fluid(family),
             targets: &targets,
             background: inputs.background,
@@ -443,6 +473,7 @@ impl TypedStage for Evaluate {
             test_psnr_mask_mean: mean(&mut scores.iter().filter(test).map(|s| s.psnr_mask)),
             test_mask_iou_mean: mean(&mut scores.iter().filter(test).map(|s| s.mask_iou)),
             test_psnr_per_frame: per_frame,
+            relight_explained: shading.as_ref().map(|r| r.shading.explained),
             learned: learned_map,
             initial_velocity: velocity.initial_velocity,
             ground_truth: truth,
@@ -610,6 +641,9 @@ fn summary(e: &Evaluation) -> String {
 /// Renders and scores every view of a frame as the rollout reaches it.
 struct Scorer<'a> {
     object: &'a Object,
+    /// The re-lighting, when on.
+    shading: Option<&'a Relight>,
+    family: MaterialFamily,
     fluid: bool,
     targets: &'a [Target],
     background: [f32; 3],
@@ -632,10 +666,23 @@ impl FrameLoss for Scorer<'_> {
         _grad: Option<&mut StateGrad>,
     ) -> Result<f64, RolloutError> {
         let fail = |message: String| RolloutError::Loss { frame, message };
-        let pose = Pose::<f32>::of(state, self.object.rendered(), self.fluid);
-        let g = pose.apply(crate::scene::splat::render_gaussians(
-            &self.object.gaussians,
-        ));
+        let n = self.object.rendered();
+        let pose = Pose::<f32>::of(state, n, self.fluid);
+        let relit = self.shading.map(|r| {
+            r.sh(
+                &self.object.gaussians.sh,
+                self.object.gaussians.sh_degree,
+                &splat_deformation(self.family, &state.f[..n]),
+            )
+        });
+        let mut base = crate::scene::splat::render_gaussians(&self.object.gaussians);
+        if let (Some(sh), pipe_render::Colors::Sh { degree, .. }) = (&relit, base.colors) {
+            base.colors = pipe_render::Colors::Sh {
+                degree,
+                coeffs: sh.as_chunks::<3>().0,
+            };
+        }
+        let g = pose.apply(base);
         let opts = pipe_render::RenderOptions {
             background: [0.0; 3],
             ..Default::default()

@@ -261,7 +261,9 @@ impl TypedStage for MaterialStage {
 
     fn preset_params(&self, preset: Preset) -> Value {
         match preset {
-            Preset::Draft => json!({"epochs": 5, "cells": 16, "field": {"epochs": 20}}),
+            Preset::Draft => {
+                json!({"model": "global", "epochs": 5, "cells": 16, "field": {"epochs": 20}})
+            }
             Preset::Standard => json!({"epochs": 10, "cells": 24, "field": {"epochs": 40}}),
             Preset::Paper => json!({
                 "epochs": 200, "cells": 48, "precision": "f64", "field": {"epochs": 200}

@@ -250,7 +250,9 @@ impl TypedStage for Velocity {
 
     fn preset_params(&self, preset: Preset) -> Value {
         match preset {
-            Preset::Draft => json!({"epochs": 12, "cells": 16, "field": {"epochs": 12}}),
+            Preset::Draft => {
+                json!({"model": "rigid", "epochs": 12, "cells": 16, "field": {"epochs": 12}})
+            }
             Preset::Standard => json!({"epochs": 30, "cells": 24, "field": {"epochs": 30}}),
             Preset::Paper => json!({
                 "epochs": 100, "cells": 32, "precision": "f64", "field": {"epochs": 100}

@@ -92,7 +92,7 @@ fn model_auto_keeps_a_field_that_separates_the_two_halves() {
         "[10]",
         Some("elastic"),
         "draft",
-        "  ingest: {}\n  init: {}\n  warmup: {}\n  velocity: {model: rigid}\n  material: {}\n  \
+        "  ingest: {}\n  init: {}\n  warmup: {}\n  velocity: {model: rigid}\n  material: {model: auto}\n  \
          evaluate: {renders: false}\n",
     );
     run.run().unwrap();

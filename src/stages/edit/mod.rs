@@ -245,7 +245,7 @@ pub struct Edit;
 impl TypedStage for Edit {
     type Params = EditParams;
     const KIND: &'static str = "edit";
-    const VERSION: u32 = 3;
+    const VERSION: u32 = 4;
     const DESCRIPTION: &'static str = "Simulate new motion of the learned scene (forces, impulses, material, gravity and boundary changes) and render it as PNG frames, GIFs, MP4s and per-frame 3DGS PLYs";
     const UPSTREAM: &'static [&'static str] = &["ingest", "init", "warmup", "velocity", "material"];
     const NAMED_INSTANCES: bool = true;
@@ -905,6 +905,16 @@ pub fn run(
             Arrow::onto(&pts, centre, total, length, color).draw(cam, img);
         }
     };
+    let relight = (p.relight && family != crate::pipeline::spec::MaterialFamily::Newtonian)
+        .then(|| {
+            crate::scene::shading::Relight::of(
+                &object.body.state.x,
+                &object.body.material.volume,
+                &object.gaussians,
+                dx,
+            )
+        })
+        .flatten();
     let mut sink = |frame: u32, state: &State, stats: Option<&FrameStats>| {
         let s = &mut sink_state;
         if interrupt.is_some_and(|i| i.load(Ordering::SeqCst)) {
@@ -928,11 +938,14 @@ pub fn run(
         s.measures.push(m);
         let moved = match frame {
             0 => object.gaussians.clone(),
-            _ => deform(
-                &object.gaussians,
-                &state.x[..n_g],
-                &splat_deformation(family, &state.f[..n_g]),
-            ),
+            _ => {
+                let f = splat_deformation(family, &state.f[..n_g]);
+                let mut g = deform(&object.gaussians, &state.x[..n_g], &f);
+                if let Some(r) = &relight {
+                    g.sh = r.sh(&g.sh, g.sh_degree, &f);
+                }
+                g
+            }
         };
         let all = concat(moved, &fixed);
         if p.splats {

@@ -46,6 +46,11 @@ pub struct EditParams {
     /// Write every frame's Gaussians as a 3DGS PLY (`splats/splats_NNNN.ply`).
     #[serde(default = "yes")]
     pub splats: bool,
+    /// Re-light the moved Gaussians (solids): the irradiance of each surface normal, fitted
+    /// to the shading the warm-up baked into the colours, stays in the world when the body
+    /// turns or flattens ([`crate::scene::shading`]); also in the written splats.
+    #[serde(default = "yes")]
+    pub relight: bool,
     /// Hold the simulated part where it meets Gaussians that do not simulate (a PhysDreamer
     /// scene's moving part on its still object): the grid nodes within a cell of every still
     /// Gaussian that has a simulated particle within two cells are held still, as
