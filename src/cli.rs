@@ -345,7 +345,11 @@ fn write_report(
         } else {
             String::new()
         };
-        runs.push(crate::report::collect(ws, p, registry, &images, &prefix)?);
+        let run = crate::report::collect(ws, p, registry, &images, &prefix)?;
+        for line in run.missing() {
+            eprintln!("note: {line}");
+        }
+        runs.push(run);
     }
     publisher
         .report(&runs, out)

@@ -201,6 +201,31 @@ pub fn collect(
     })
 }
 
+impl RunSummary {
+    /// What a report of this run lacks: one line per stage without a cached result under the
+    /// file's settings (the preset and `--set` given), saying why and what to do.
+    pub fn missing(&self) -> Vec<String> {
+        self.stages
+            .iter()
+            .filter(|s| s.dir.is_none())
+            .map(|s| {
+                let why = if s.reasons.is_empty() {
+                    String::new()
+                } else {
+                    format!(" ({})", s.reasons.join("; "))
+                };
+                format!(
+                    "{}: stage `{}` is {} with these settings{why}: the report has no results \
+                     from it; run `pipe run` with the same --preset and --set first",
+                    self.file.display(),
+                    s.name,
+                    s.state
+                )
+            })
+            .collect()
+    }
+}
+
 /// First, middle and last of the evaluated frames `0..=last`, without repeats.
 pub fn strip_frames(last: u16) -> Vec<(u16, &'static str)> {
     let mut out = vec![(0, "first")];

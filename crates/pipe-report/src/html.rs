@@ -13,6 +13,10 @@ use crate::model::{Drawn, Report, SceneReport};
 use crate::plot::inline;
 use crate::text::{self, html as esc};
 
+/// The summary row of `evaluation.json`'s `relight_explained` (percent; empty when not re-lit).
+pub const RELIGHT_LABEL: &str =
+    "re-lit: share of the colours' log-luminance the normals explain (%)";
+
 /// Everything a page may load: images from `data:` URIs, its own inline style; nothing else.
 pub const CSP: &str = "default-src 'none'; img-src data:; style-src 'unsafe-inline'";
 
@@ -90,6 +94,9 @@ fn summary_rows(report: &Report) -> Vec<(String, Vec<String>)> {
         }),
         row("material points off, last frame (mm)", &|s| {
             text::opt(eval_number(s, "tracking_last_frame_m").map(|m| m * 1e3))
+        }),
+        row(RELIGHT_LABEL, &|s| {
+            text::opt(eval_number(s, "relight_explained").map(|m| m * 1e2))
         }),
     ];
     let mut names: Vec<String> = Vec::new();

@@ -186,6 +186,10 @@ pub fn document(report: &Report) -> String {
         text::opt(eval_number(s, "tracking_last_frame_m").map(|m| m * 1e3))
     });
     row(&mut out, &cells);
+    let cells = line(crate::html::RELIGHT_LABEL, &|s| {
+        text::opt(eval_number(s, "relight_explained").map(|m| m * 1e2))
+    });
+    row(&mut out, &cells);
     let cells = line("wall time of all stages (s)", &|s| {
         text::seconds(Some(s.total_wall_s))
     });

@@ -578,6 +578,24 @@ fn the_report_opens_in_headless_chromium_with_everything_and_no_request() {
     }
 }
 
+/// A report asked with settings the cached stages were not run with names the stages it has
+/// no result from (a user who ran with `--set` and reports without it).
+#[test]
+fn a_report_under_other_settings_names_the_stages_it_lacks() {
+    let d = demo();
+    let file = pipeline(d.dir.path(), "demo-other-lr", 0.77);
+    let reg = pipe::stages::builtin();
+    let p = pipe::pipeline::spec::load(&file, &reg, &Default::default()).unwrap();
+    let ws = pipe::pipeline::runner::Workspace::new(d.dir.path());
+    let images = tempfile::tempdir().unwrap();
+    let run = pipe::report::collect(&ws, &p, &reg, images.path(), "").unwrap();
+    let missing = run.missing();
+    assert_eq!(missing.len(), 2, "{missing:?}");
+    assert!(missing[0].contains("stage `material`") && missing[0].contains("--set"));
+    assert!(missing[1].contains("stage `evaluate`"));
+    assert!(missing.iter().all(|m| m.contains("demo-other-lr.yaml")));
+}
+
 #[test]
 fn a_report_of_a_pipeline_that_never_ran_says_to_run_it() {
     let dir = tempfile::tempdir().unwrap();
