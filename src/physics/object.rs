@@ -72,6 +72,18 @@ impl Object {
         self.gaussians.len()
     }
 
+    /// The re-lighting of the Gaussians when the body deforms ([`crate::scene::shading`]):
+    /// normals from the particles at rest, the irradiance fitted to the canonical colours;
+    /// `None` when too few Gaussians have a normal.
+    pub fn relight(&self) -> Option<crate::scene::shading::Relight> {
+        crate::scene::shading::Relight::of(
+            &self.body.state.x,
+            &self.body.material.volume,
+            &self.gaussians,
+            self.body.setup.dx,
+        )
+    }
+
     /// Total mass (kg).
     pub fn mass(&self) -> f64 {
         self.body.material.mass.iter().sum()

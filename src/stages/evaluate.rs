@@ -308,12 +308,7 @@ impl TypedStage for Evaluate {
             }
         }
         let shading = if p.relight && !is_fluid(family) {
-            Relight::of(
-                &object.body.state.x,
-                &object.body.material.volume,
-                &object.gaussians,
-                object.body.setup.dx,
-            )
+            object.relight()
         } else {
             None
         };

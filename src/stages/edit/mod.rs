@@ -906,14 +906,7 @@ pub fn run(
         }
     };
     let relight = (p.relight && family != crate::pipeline::spec::MaterialFamily::Newtonian)
-        .then(|| {
-            crate::scene::shading::Relight::of(
-                &object.body.state.x,
-                &object.body.material.volume,
-                &object.gaussians,
-                dx,
-            )
-        })
+        .then(|| object.relight())
         .flatten();
     let mut sink = |frame: u32, state: &State, stats: Option<&FrameStats>| {
         let s = &mut sink_state;
