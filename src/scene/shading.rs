@@ -22,7 +22,9 @@
 //! Shadows, occlusion and inter-reflections are not modelled: the gain is clamped to
 //! `[1/2, 2]`.
 
-use glam::{DMat3, DVec3};
+use glam::{DMat3, DMat4, DVec3, DVec4};
+use pipe_mpm::math::cofactor;
+use pipe_render::gaussians::sigmoid;
 use rayon::prelude::*;
 
 use super::gaussians::{Gaussians, sh_coeffs};
@@ -34,16 +36,13 @@ const SH_C0: f64 = 0.282_094_791_773_878_14;
 /// Gains are kept within `[1/MAX_GAIN, MAX_GAIN]`.
 const MAX_GAIN: f64 = 2.0;
 
-/// Basis functions of `ln E`.
-const K: usize = 4;
-
 /// Darkest luminance the fit takes the log of.
 const MIN_LUMINANCE: f64 = 0.02;
 
 /// The basis of `ln E` at the unit normal `n`: the real SH of degree ≤ 1 (constants dropped:
 /// they only scale the fitted weights).
-fn basis(n: DVec3) -> [f64; K] {
-    [1.0, n.x, n.y, n.z]
+fn basis(n: DVec3) -> DVec4 {
+    DVec4::new(1.0, n.x, n.y, n.z)
 }
 
 /// Outward unit normal of each of the first `rendered` particles at rest, with a confidence in
@@ -88,7 +87,7 @@ pub fn rest_normals(
 pub struct Shading {
     /// Weights of the basis functions (the first, the mean log-albedo, plays no part in the
     /// gains; the others are the light's direction times its strength).
-    pub weights: [f64; K],
+    pub weights: DVec4,
     /// Share of the weighted variance of the Gaussians' log-luminance the normals explain.
     pub explained: f64,
 }
@@ -100,11 +99,10 @@ impl Shading {
     pub fn fit(g: &Gaussians, normals: &[(DVec3, f64)]) -> Option<Self> {
         let k = 3 * sh_coeffs(g.sh_degree);
         let n = normals.len().min(g.len());
-        let (mut ata, mut atb) = ([[0.0f64; K]; K], [0.0f64; K]);
+        let (mut ata, mut atb) = (DMat4::ZERO, DVec4::ZERO);
         let (mut rows, mut sw, mut swy, mut swyy) = (0usize, 0.0, 0.0, 0.0);
         for (i, &(normal, conf)) in normals.iter().enumerate().take(n) {
-            let opacity = 1.0 / (1.0 + (-f64::from(g.opacity_logit[i])).exp());
-            let w = opacity * conf;
+            let w = sigmoid(f64::from(g.opacity_logit[i])) * conf;
             if w.is_nan() || w <= 0.0 {
                 continue;
             }
@@ -116,12 +114,8 @@ impl Shading {
                 .sum();
             let y = lum.max(MIN_LUMINANCE).ln();
             let b = basis(normal);
-            for r in 0..K {
-                atb[r] += w * b[r] * y;
-                for c in 0..K {
-                    ata[r][c] += w * b[r] * b[c];
-                }
-            }
+            atb += b * (w * y);
+            ata += DMat4::from_cols(b * b.x, b * b.y, b * b.z, b * b.w) * w;
             rows += 1;
             sw += w;
             swy += w * y;
@@ -130,32 +124,27 @@ impl Shading {
         if rows < 32 {
             return None;
         }
-        let ridge = 1e-6 * (0..K).map(|d| ata[d][d]).sum::<f64>() / K as f64;
-        for (d, row) in ata.iter_mut().enumerate() {
-            row[d] += ridge;
+        let ridge = 1e-6 * (ata.x_axis.x + ata.y_axis.y + ata.z_axis.z + ata.w_axis.w) / 4.0;
+        let ata = ata + DMat4::from_diagonal(DVec4::splat(ridge));
+        let det = ata.determinant();
+        if !det.is_finite() || det <= 0.0 {
+            return None;
         }
-        let weights = solve(ata, atb)?;
+        let weights = ata.inverse() * atb;
         let variance = swyy / sw - (swy / sw).powi(2);
         // Weighted residual variance: Σw(y − b·w)² = Σwy² − 2 wᵀAᵀy + wᵀAᵀA w.
-        let fitted: f64 = (0..K).map(|r| weights[r] * atb[r]).sum();
-        let quad: f64 = (0..K)
-            .map(|r| weights[r] * (0..K).map(|c| ata[r][c] * weights[c]).sum::<f64>())
-            .sum();
-        let residual = (swyy - 2.0 * fitted + quad) / sw;
+        let residual = (swyy - 2.0 * weights.dot(atb) + weights.dot(ata * weights)) / sw;
         let explained = if variance > 0.0 {
             (1.0 - residual / variance).clamp(0.0, 1.0)
         } else {
             0.0
         };
-        weights
-            .iter()
-            .all(|w| w.is_finite())
-            .then_some(Self { weights, explained })
+        weights.is_finite().then_some(Self { weights, explained })
     }
 
     /// `ln E(n)`.
     fn log_irradiance(&self, n: DVec3) -> f64 {
-        basis(n).iter().zip(&self.weights).map(|(b, w)| b * w).sum()
+        basis(n).dot(self.weights)
     }
 
     /// The colour gain of each Gaussian deformed by `f` (one per normal): `E(n_t)/E(n_0)`,
@@ -172,7 +161,7 @@ impl Shading {
                 if conf <= 0.0 || !det.is_finite() || det <= 0.0 {
                     return 1.0;
                 }
-                let nt = (f.inverse().transpose() * n0).normalize_or_zero();
+                let nt = (cofactor(f) * n0).normalize_or_zero();
                 if nt == DVec3::ZERO {
                     return 1.0;
                 }
@@ -226,32 +215,6 @@ impl Relight {
     pub fn sh(&self, sh: &[f32], degree: u8, f: &[DMat3]) -> Vec<f32> {
         relit_sh(sh, degree, &self.shading.gains(&self.normals, f))
     }
-}
-
-/// Solves the `K×K` system `a x = b` (Gaussian elimination with partial pivoting).
-fn solve(mut a: [[f64; K]; K], mut b: [f64; K]) -> Option<[f64; K]> {
-    for col in 0..K {
-        let pivot = (col..K).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
-        if a[pivot][col].is_nan() || a[pivot][col].abs() <= 1e-300 {
-            return None;
-        }
-        a.swap(col, pivot);
-        b.swap(col, pivot);
-        let (pivot_row, pivot_b) = (a[col], b[col]);
-        for (row, br) in a.iter_mut().zip(b.iter_mut()).skip(col + 1) {
-            let m = row[col] / pivot_row[col];
-            for (v, p) in row.iter_mut().zip(pivot_row).skip(col) {
-                *v -= m * p;
-            }
-            *br -= m * pivot_b;
-        }
-    }
-    let mut x = [0.0; K];
-    for r in (0..K).rev() {
-        let s: f64 = (r + 1..K).map(|c| a[r][c] * x[c]).sum();
-        x[r] = (b[r] - s) / a[r][r];
-    }
-    Some(x)
 }
 
 #[cfg(test)]

@@ -28,14 +28,13 @@ use crate::physics::object::Object;
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::pose::Pose;
 use crate::physics::rollout::{FrameLoss, Moduli, Rollout, RolloutError, Wants, is_fluid};
-use crate::pipeline::spec::{MaterialFamily, Preset, SceneSpec};
+use crate::pipeline::spec::{Preset, SceneSpec};
 use crate::pipeline::stage::{
     InputFile, MetricRow, ParamError, StageContext, StageError, TypedStage,
 };
 use crate::scene::frames::{FrameRow, Role};
 use crate::scene::shading::Relight;
 use crate::scene::targets::{self, Target, composite};
-use crate::simulate::splat_deformation;
 use crate::stages::material::{MaterialModel, MaterialResult};
 use crate::stages::velocity::VelocityResult;
 
@@ -321,7 +320,6 @@ impl TypedStage for Evaluate {
         let mut eval = Scorer {
             object: &object,
             shading: shading.as_ref(),
-            family,
             fluid: is_fluid(family),
             targets: &targets,
             background: inputs.background,
@@ -638,7 +636,6 @@ struct Scorer<'a> {
     object: &'a Object,
     /// The re-lighting, when on.
     shading: Option<&'a Relight>,
-    family: MaterialFamily,
     fluid: bool,
     targets: &'a [Target],
     background: [f32; 3],
@@ -667,7 +664,7 @@ impl FrameLoss for Scorer<'_> {
             r.sh(
                 &self.object.gaussians.sh,
                 self.object.gaussians.sh_degree,
-                &splat_deformation(self.family, &state.f[..n]),
+                &state.f[..n],
             )
         });
         let mut base = crate::scene::splat::render_gaussians(&self.object.gaussians);
