@@ -11,11 +11,15 @@ point (the bounce lifts it from ~0.02 m to ~0.11 m).
 SCENE: the torus-elastic folder (e.g. ../shared/datasets/torus-elastic). SIM_YAML: a simulation
 file with the true material (E 1e6 Pa, nu 0.3), `initial_velocity: [0.15, -0.3, 0.1]` and
 `grid_dx: 0.02`, e.g. a `material` entry's `scene.sim.yaml` with those values set.
+When `gt/params.json` describes a torus (`shape.args` R, r), two fresh random samplings of that
+same torus (as many particles, its pose from the true particles) are added: what sampling alone
+does to the bounce, the floor for any reconstruction.
 PARTICLES_ARROW (optional): a `material` entry's `particles.arrow`: adds the true particles
 plus that reconstruction's 1 cm voxels lying > 8 mm from them, and the reconstruction
 voxelised and filled. Needs numpy and scipy (and pyarrow for the optional file); `pipe` on
 PATH or in $PIPE.
 """
+import json
 import os
 import subprocess
 import sys
@@ -73,6 +77,27 @@ def voxels(x, h=0.01):
     return lo + (np.argwhere(filled) + 0.5) * h
 
 
+def resampled_torus(g, big_r, small_r, seed):
+    """As many uniform random points as `g` inside the torus (radii `big_r`, `small_r`, m) that
+    `g` samples: centre its mean, axis its principal direction of least extent."""
+    centre = g.mean(0)
+    axis = np.linalg.svd(g - centre, full_matrices=False)[2][2]
+
+    def inside(p):
+        q = p - centre
+        h = q @ axis
+        radial = np.linalg.norm(q - np.outer(h, axis), axis=1)
+        return np.hypot(radial - big_r, h) < small_r
+
+    rng = np.random.default_rng(seed)
+    lo, hi = g.min(0) - 0.01, g.max(0) + 0.01
+    out = []
+    while sum(len(o) for o in out) < len(g):
+        p = lo + (hi - lo) * rng.random((200_000, 3))
+        out.append(p[inside(p)])
+    return np.concatenate(out)[: len(g)]
+
+
 def main():
     if len(sys.argv) < 3:
         sys.exit(__doc__)
@@ -90,6 +115,11 @@ def main():
         "jittered 1.5 mm": g + rng.normal(0, 0.0015, g.shape),
         "jittered 4 mm": g + np.random.default_rng(0).normal(0, 0.004, g.shape),
     }
+    shape = json.load(open(os.path.join(scene, "gt", "params.json"))).get("shape", {})
+    if shape.get("kind") == "torus":
+        for seed in (1, 2):
+            cases[f"torus resampled, seed {seed}"] = resampled_torus(
+                g, shape["args"]["R"], shape["args"]["r"], seed)
     if len(sys.argv) > 3:
         import pyarrow.ipc as ipc
 

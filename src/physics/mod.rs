@@ -6,6 +6,7 @@
 //! Gaussians posed at its state ([`pose`], [`views`]).
 
 pub mod adam;
+pub mod appearance;
 pub mod descent;
 pub mod fit;
 pub mod free_flight;

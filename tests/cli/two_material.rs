@@ -131,6 +131,24 @@ fn model_auto_keeps_a_field_that_separates_the_two_halves() {
         soft_error < 0.15,
         "the soft half's median is {soft_error} decades off"
     );
+    // The colours were refitted along the learned motion, judged on the held-out views.
+    let refit = &e["colour_refit"];
+    println!("{refit}");
+    assert_eq!(
+        refit["held_out_views"],
+        serde_json::json!([3, 7]),
+        "{refit}"
+    );
+    let (before, after) = (
+        refit["held_out_loss_before"].as_f64().unwrap(),
+        refit["held_out_loss_after"].as_f64().unwrap(),
+    );
+    assert!(before.is_finite() && after.is_finite(), "{refit}");
+    assert_eq!(refit["kept"].as_bool(), Some(after < before), "{refit}");
+    if after < before {
+        assert_eq!(refit["epochs"], 10, "the draft preset's passes");
+        assert!(refit["loss_last_epoch"].as_f64() < refit["loss_first_epoch"].as_f64());
+    }
     let psnr = e["test_psnr_mean"].as_f64().unwrap();
     let chamfer = e["chamfer_last_frame_m"].as_f64().unwrap();
     println!("test PSNR {psnr:.2} dB, Chamfer {:.1} mm", chamfer * 1e3);

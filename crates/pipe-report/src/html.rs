@@ -17,6 +17,33 @@ use crate::text::{self, html as esc};
 pub const RELIGHT_LABEL: &str =
     "re-lit: share of the colours' log-luminance the normals explain (%)";
 
+/// The summary row of `evaluation.json`'s `colour_refit`.
+pub const COLOUR_LABEL: &str = "colours refitted along the motion (held-out training views' loss)";
+
+/// The cell of [`COLOUR_LABEL`]: whether the refit was kept and how it changed the held-out
+/// views' loss; empty when there was none.
+pub fn colour_refit_cell(s: &SceneReport) -> String {
+    let Some(r) = s.evaluation.as_ref().and_then(|e| e.get("colour_refit")) else {
+        return String::new();
+    };
+    let kept = r.get("kept").and_then(Value::as_bool);
+    let change = match (
+        r.get("held_out_loss_before").and_then(Value::as_f64),
+        r.get("held_out_loss_after").and_then(Value::as_f64),
+    ) {
+        (Some(b), Some(a)) if b > 0.0 => format!("{:+.1} %", 100.0 * (a / b - 1.0)),
+        _ => "undecided".into(),
+    };
+    match kept {
+        Some(true) => format!(
+            "kept ({change}, {} passes)",
+            r.get("epochs").and_then(Value::as_u64).unwrap_or(0)
+        ),
+        Some(false) => format!("not kept ({change})"),
+        None => String::new(),
+    }
+}
+
 /// Everything a page may load: images from `data:` URIs, its own inline style; nothing else.
 pub const CSP: &str = "default-src 'none'; img-src data:; style-src 'unsafe-inline'";
 
@@ -98,6 +125,7 @@ fn summary_rows(report: &Report) -> Vec<(String, Vec<String>)> {
         row(RELIGHT_LABEL, &|s| {
             text::opt(eval_number(s, "relight_explained").map(|m| m * 1e2))
         }),
+        row(COLOUR_LABEL, &colour_refit_cell),
     ];
     let mut names: Vec<String> = Vec::new();
     for s in scenes {

@@ -190,6 +190,8 @@ pub fn document(report: &Report) -> String {
         text::opt(eval_number(s, "relight_explained").map(|m| m * 1e2))
     });
     row(&mut out, &cells);
+    let cells = line(crate::html::COLOUR_LABEL, &crate::html::colour_refit_cell);
+    row(&mut out, &cells);
     let cells = line("wall time of all stages (s)", &|s| {
         text::seconds(Some(s.total_wall_s))
     });
