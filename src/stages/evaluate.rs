@@ -34,7 +34,9 @@ use crate::pipeline::stage::{
     InputFile, MetricRow, ParamError, StageContext, StageError, TypedStage,
 };
 use crate::scene::frames::{FrameRow, Role};
+use crate::scene::gaussians::Gaussians;
 use crate::scene::shading::Relight;
+use crate::scene::table::Table;
 use crate::scene::targets::{self, Target, composite};
 use crate::stages::material::{MaterialModel, MaterialResult};
 use crate::stages::velocity::VelocityResult;
@@ -209,7 +211,7 @@ impl TypedStage for Evaluate {
     const UPSTREAM: &'static [&'static str] = &["ingest", "init", "warmup", "velocity", "material"];
 
     fn output_schemas(&self) -> Vec<(&'static str, u32)> {
-        Vec::new()
+        vec![(Gaussians::NAME, Gaussians::VERSION)]
     }
 
     fn preset_params(&self, preset: Preset) -> Value {
@@ -387,6 +389,7 @@ impl TypedStage for Evaluate {
             )?;
             if let Some(sh) = sh {
                 object.gaussians.sh = sh;
+                write_refitted(&inputs.gaussians, &object.gaussians, ctx.out_dir)?;
             }
             Some(refit)
         } else {
@@ -613,6 +616,28 @@ impl TypedStage for Evaluate {
 }
 
 /// The grid cells the `material` stage simulated with (its resolved parameters).
+/// Writes `gaussians.arrow`: the warm-up's Gaussians (`all`, floaters included) with the
+/// colours of the simulated ones (`refitted`, matched by id) replaced: what `edit` renders.
+fn write_refitted(all: &Gaussians, refitted: &Gaussians, out: &Path) -> Result<(), StageError> {
+    let per = 3 * crate::scene::gaussians::sh_coeffs(all.sh_degree);
+    let row: BTreeMap<u32, usize> = refitted
+        .id
+        .iter()
+        .enumerate()
+        .map(|(i, id)| (*id, i))
+        .collect();
+    let mut g = all.clone();
+    for (k, id) in all.id.iter().enumerate() {
+        if let Some(&i) = row.get(id) {
+            g.sh[k * per..(k + 1) * per].copy_from_slice(&refitted.sh[i * per..(i + 1) * per]);
+        }
+    }
+    crate::scene::table::write(&out.join(GAUSSIANS_FILE), &g).map_err(StageError::failed)
+}
+
+/// The refitted canonical Gaussians `evaluate` writes when it keeps the colour refit.
+pub const GAUSSIANS_FILE: &str = "gaussians.arrow";
+
 /// `λ` of the refit's `λ·L1 + (1 − λ)·D-SSIM`: the fitting stages' default.
 const LAMBDA_DSSIM: f64 = 0.1;
 

@@ -80,11 +80,12 @@ fn two_material_scene_ingests_with_masks_matching_the_renderers_coverage() {
 /// the global model (one E: the soft half's), then a field on eight of the ten training views
 /// and frames 1–6, and keeps the field because it lowers the loss on the rest (views 3 and 7,
 /// frames 7–9; measured 0.654 → 0.245). The field makes the re-simulation far closer to the
-/// capture (measured test PSNR 32.54 dB, the global model ~27.4; Chamfer at the last frame
+/// capture (measured test PSNR 33.24 dB with `evaluate`'s colour refit, 32.54 without; the global model ~27.4; Chamfer at the last frame
 /// 10.2 mm against ~27) and finds the soft half (median 1.62e4 Pa, 0.09 decades off, asserted
 /// within the issue's 0.15). Not asserted, because not met: the stiff half's median within
 /// 0.15 (measured 2.4e5 Pa, 0.40 decades low: ten 80² frames show it barely bending). About
-/// 5 min.
+/// 5 min. `evaluate` keeps its colour refit (held-out training views 3 and 7 gain: measured
+/// 0.0258 -> 0.0242) and writes the refitted Gaussians, which an `edit` then renders.
 #[test]
 fn model_auto_keeps_a_field_that_separates_the_two_halves() {
     let run = BuiltinRun::with_family(
@@ -93,7 +94,7 @@ fn model_auto_keeps_a_field_that_separates_the_two_halves() {
         Some("elastic"),
         "draft",
         "  ingest: {}\n  init: {}\n  warmup: {}\n  velocity: {model: rigid}\n  material: {model: auto}\n  \
-         evaluate: {renders: false}\n",
+         evaluate: {renders: false}\n  edit:\n    still: {frames: 2, cameras: [{view: 0}]}\n",
     );
     run.run().unwrap();
     let read = |stage: &str, file: &str| -> serde_json::Value {
@@ -145,10 +146,54 @@ fn model_auto_keeps_a_field_that_separates_the_two_halves() {
     );
     assert!(before.is_finite() && after.is_finite(), "{refit}");
     assert_eq!(refit["kept"].as_bool(), Some(after < before), "{refit}");
-    if after < before {
-        assert_eq!(refit["epochs"], 10, "the draft preset's passes");
-        assert!(refit["loss_last_epoch"].as_f64() < refit["loss_first_epoch"].as_f64());
+    assert!(
+        after < before,
+        "the refit helps on the held-out views: {refit}"
+    );
+    assert_eq!(refit["epochs"], 10, "the draft preset's passes");
+    assert!(refit["loss_last_epoch"].as_f64() < refit["loss_first_epoch"].as_f64());
+    // `evaluate` wrote the refitted Gaussians (the warm-up's, new colours), and `edit` renders
+    // them: its frame-0 splats carry those colours, not the warm-up's.
+    let refitted: pipe::scene::gaussians::Gaussians =
+        pipe::scene::table::read(&run.entry("evaluate").join("gaussians.arrow")).unwrap();
+    let warm: pipe::scene::gaussians::Gaussians =
+        pipe::scene::table::read(&run.entry("warmup").join("gaussians.arrow")).unwrap();
+    assert_eq!(
+        (refitted.id.clone(), refitted.position.clone()),
+        (warm.id.clone(), warm.position.clone())
+    );
+    assert_ne!(refitted.sh, warm.sh);
+    let splats =
+        pipe::io::ply::read_gaussians(&run.entry("edit.still").join("splats/splats_0000.ply"))
+            .unwrap();
+    let per = 3 * pipe::scene::gaussians::sh_coeffs(warm.sh_degree);
+    let at: std::collections::HashMap<[u32; 3], usize> = warm
+        .position
+        .iter()
+        .enumerate()
+        .map(|(i, p)| (p.map(f32::to_bits), i))
+        .collect();
+    let (mut same_as_refit, mut matched) = (0, 0);
+    for (k, p) in splats.position.iter().enumerate() {
+        if let Some(&i) = at.get(&p.map(f32::to_bits)) {
+            matched += 1;
+            let dc = &splats.sh[k * per..k * per + 3];
+            same_as_refit += usize::from(
+                dc.iter()
+                    .zip(&refitted.sh[i * per..i * per + 3])
+                    .all(|(a, b)| (a - b).abs() < 1e-5),
+            );
+        }
     }
+    assert!(
+        matched > splats.len() / 2,
+        "{matched} of {} splats found",
+        splats.len()
+    );
+    assert_eq!(
+        same_as_refit, matched,
+        "the edit's splats carry the refitted colours"
+    );
     let psnr = e["test_psnr_mean"].as_f64().unwrap();
     let chamfer = e["chamfer_last_frame_m"].as_f64().unwrap();
     println!("test PSNR {psnr:.2} dB, Chamfer {:.1} mm", chamfer * 1e3);

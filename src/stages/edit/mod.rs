@@ -245,9 +245,11 @@ pub struct Edit;
 impl TypedStage for Edit {
     type Params = EditParams;
     const KIND: &'static str = "edit";
-    const VERSION: u32 = 4;
+    const VERSION: u32 = 5;
     const DESCRIPTION: &'static str = "Simulate new motion of the learned scene (forces, impulses, material, gravity and boundary changes) and render it as PNG frames, GIFs, MP4s and per-frame 3DGS PLYs";
-    const UPSTREAM: &'static [&'static str] = &["ingest", "init", "warmup", "velocity", "material"];
+    const UPSTREAM: &'static [&'static str] = &[
+        "ingest", "init", "warmup", "velocity", "material", "evaluate",
+    ];
     const NAMED_INSTANCES: bool = true;
 
     fn output_schemas(&self) -> Vec<(&'static str, u32)> {
@@ -315,8 +317,15 @@ fn read_scene(ctx: &StageContext<'_>) -> Result<Scene, EditError> {
         Ok(w) => ("warmup", w),
         Err(_) => ("init", ctx.upstream("init").map_err(|e| inputs(&e))?),
     };
+    // The colours `evaluate` refitted along the learned motion, when it kept them.
+    let refitted = ctx
+        .upstream("evaluate")
+        .ok()
+        .map(|e| e.dir.join(crate::stages::evaluate::GAUSSIANS_FILE))
+        .filter(|p| p.is_file());
     let gaussians: Gaussians =
-        crate::scene::table::read(&entry.dir.join("gaussians.arrow")).map_err(|e| inputs(&e))?;
+        crate::scene::table::read(&refitted.unwrap_or_else(|| entry.dir.join("gaussians.arrow")))
+            .map_err(|e| inputs(&e))?;
     if gaussians.is_empty() {
         return Err(inputs(&format!("{source} produced no Gaussians")));
     }
