@@ -11,14 +11,12 @@
 //! gradient of the albedo's coefficients is `k_f` times theirs), so that the albedo absorbs
 //! what the shading model does not and no more.
 
-use glam::DMat3;
 use pipe_mpm::{State, StateGrad};
 
 use super::object::Object;
 use super::pose::Pose;
 use super::rollout::{FrameLoss, RolloutError};
-use crate::scene::gaussians::Gaussians;
-use crate::scene::gaussians::sh_coeffs;
+use crate::scene::gaussians::{Gaussians, sh_coeffs};
 use crate::scene::shading::{Relight, relit_sh};
 use crate::scene::targets::{Target, view_loss};
 use crate::stages::warmup::adam::{AdamConfig, AdamState};
@@ -69,10 +67,9 @@ impl<'a> MotionRecorder<'a> {
     /// Records `state` as frame `frame`.
     pub fn record(&mut self, frame: u16, state: &State) {
         let n = self.object.rendered();
-        let gains = self.shading.map_or_else(Vec::new, |r| {
-            let f: &[DMat3] = &state.f[..n];
-            r.shading.gains(&r.normals, f)
-        });
+        let gains = self
+            .shading
+            .map_or_else(Vec::new, |r| r.gains(&state.f[..n]));
         self.frames.push(PosedFrame {
             frame,
             pose: Pose::of(state, n, self.fluid),

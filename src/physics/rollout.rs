@@ -234,6 +234,15 @@ pub type OnFrame<'c> =
     dyn FnMut(u16, FrameGradient<'_>) -> Result<Option<NextMaterial>, RolloutError> + 'c;
 
 impl Rollout<'_> {
+    /// Frame 0: the object's canonical state moving at the initial velocity.
+    pub fn initial_state(&self) -> State {
+        let mut state = self.object.body.state.clone();
+        for (v, v0) in state.v.iter_mut().zip(self.v0) {
+            *v = *v0;
+        }
+        state
+    }
+
     /// Runs the rollout, calling `loss` at the end of every frame.
     pub fn run(&self, loss: &mut dyn FrameLoss, wants: Wants) -> Result<Outcome, RolloutError> {
         self.material.spec().mpm_family().visit(Visit {
@@ -304,10 +313,7 @@ impl ModelVisitor for Visit<'_, '_> {
             e: vec![0.0; k.e.len()],
             nu: vec![0.0; k.nu.len()],
         });
-        let mut state = object.body.state.clone();
-        for (v, v0) in state.v.iter_mut().zip(r.v0) {
-            *v = *v0;
-        }
+        let mut state = r.initial_state();
         let n_all = state.len();
         let frame_dt = object.spec.frame_dt;
         let mut frame_loss = Vec::new();

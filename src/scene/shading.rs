@@ -210,10 +210,15 @@ impl Relight {
         Some(Self { normals, shading })
     }
 
+    /// The colour gain of each Gaussian deformed by `f` (one per Gaussian; [`Shading::gains`]).
+    pub fn gains(&self, f: &[DMat3]) -> Vec<f32> {
+        self.shading.gains(&self.normals, f)
+    }
+
     /// `sh` (the Gaussians', canonical or already turned by the deformation) re-lit for the
     /// deformation gradients `f` (one per Gaussian).
     pub fn sh(&self, sh: &[f32], degree: u8, f: &[DMat3]) -> Vec<f32> {
-        relit_sh(sh, degree, &self.shading.gains(&self.normals, f))
+        relit_sh(sh, degree, &self.gains(f))
     }
 }
 

@@ -368,28 +368,29 @@ impl TypedStage for Evaluate {
                 100.0 * r.shading.explained
             ));
         }
-        let mut object = object;
+        let interrupt = ctx.interrupt_flag();
+        let rollout = Rollout {
+            object: &object,
+            material: &values,
+            v0: &v0,
+            frames: last,
+            precision: p.precision.mpm(),
+            interrupt: Some(interrupt),
+            moduli: moduli.as_ref(),
+        };
+        let mut gaussians = std::borrow::Cow::Borrowed(&object.gaussians);
         let colour_refit = if p.colour_epochs > 0 {
             let (sh, refit) = refit_colours(
                 ctx,
-                &object,
                 shading.as_ref(),
                 &targets,
-                &Rollout {
-                    object: &object,
-                    material: &values,
-                    v0: &v0,
-                    frames: last,
-                    precision: p.precision.mpm(),
-                    interrupt: Some(ctx.interrupt_flag()),
-                    moduli: moduli.as_ref(),
-                },
+                &rollout,
                 p,
                 inputs.background,
             )?;
             if let Some(sh) = sh {
-                object.gaussians.sh = sh;
-                write_refitted(&inputs.gaussians, &object.gaussians, ctx.out_dir)?;
+                gaussians.to_mut().sh = sh;
+                write_refitted(&inputs.gaussians, &gaussians, ctx.out_dir)?;
             }
             Some(refit)
         } else {
@@ -397,6 +398,7 @@ impl TypedStage for Evaluate {
         };
         let mut eval = Scorer {
             object: &object,
+            gaussians: &gaussians,
             shading: shading.as_ref(),
             fluid: is_fluid(family),
             targets: &targets,
@@ -420,23 +422,9 @@ impl TypedStage for Evaluate {
                 v.len()
             }
         ));
-        // Frame 0 is the canonical state.
-        let mut s0 = object.body.state.clone();
-        for (v, w) in s0.v.iter_mut().zip(&v0) {
-            *v = *w;
-        }
-        eval.frame(0, &s0, None).map_err(train_error)?;
-        Rollout {
-            object: &object,
-            material: &values,
-            v0: &v0,
-            frames: last,
-            precision: p.precision.mpm(),
-            interrupt: Some(ctx.interrupt_flag()),
-            moduli: moduli.as_ref(),
-        }
-        .run(&mut eval, Wants::Loss)
-        .map_err(train_error)?;
+        eval.frame(0, &rollout.initial_state(), None)
+            .map_err(train_error)?;
+        rollout.run(&mut eval, Wants::Loss).map_err(train_error)?;
         if p.renders {
             for (view, frames) in &eval.gif {
                 crate::io::video::write_gif(
@@ -648,7 +636,6 @@ const LAMBDA_DSSIM: f64 = 0.1;
 #[allow(clippy::too_many_arguments)]
 fn refit_colours(
     ctx: &mut StageContext<'_>,
-    object: &Object,
     shading: Option<&Relight>,
     targets: &[Target],
     rollout: &Rollout<'_>,
@@ -656,12 +643,9 @@ fn refit_colours(
     background: [f32; 3],
 ) -> Result<(Option<Vec<f32>>, ColourRefit), StageError> {
     let started = std::time::Instant::now();
+    let object = rollout.object;
     let mut motion = MotionRecorder::new(object, is_fluid(rollout.material.family), shading);
-    let mut s0 = object.body.state.clone();
-    for (v, w) in s0.v.iter_mut().zip(rollout.v0) {
-        *v = *w;
-    }
-    motion.record(0, &s0);
+    motion.record(0, &rollout.initial_state());
     rollout.run(&mut motion, Wants::Loss).map_err(train_error)?;
     let fail = |e: String| StageError::failed(FitError::Invalid(e));
     let fit = ColourFit {
@@ -849,6 +833,8 @@ fn summary(e: &Evaluation) -> String {
 /// Renders and scores every view of a frame as the rollout reaches it.
 struct Scorer<'a> {
     object: &'a Object,
+    /// Its Gaussians as rendered (the canonical ones, their colours refitted when they were).
+    gaussians: &'a Gaussians,
     /// The re-lighting, when on.
     shading: Option<&'a Relight>,
     fluid: bool,
@@ -875,14 +861,10 @@ impl FrameLoss for Scorer<'_> {
         let fail = |message: String| RolloutError::Loss { frame, message };
         let n = self.object.rendered();
         let pose = Pose::<f32>::of(state, n, self.fluid);
-        let relit = self.shading.map(|r| {
-            r.sh(
-                &self.object.gaussians.sh,
-                self.object.gaussians.sh_degree,
-                &state.f[..n],
-            )
-        });
-        let mut base = crate::scene::splat::render_gaussians(&self.object.gaussians);
+        let relit = self
+            .shading
+            .map(|r| r.sh(&self.gaussians.sh, self.gaussians.sh_degree, &state.f[..n]));
+        let mut base = crate::scene::splat::render_gaussians(self.gaussians);
         if let (Some(sh), pipe_render::Colors::Sh { degree, .. }) = (&relit, base.colors) {
             base.colors = pipe_render::Colors::Sh {
                 degree,
