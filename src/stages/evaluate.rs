@@ -239,6 +239,12 @@ impl TypedStage for Evaluate {
                 message: format!("must be in 1..=10000, found {}", p.gif_ms),
             });
         }
+        if !(p.colour_lr.is_finite() && p.colour_lr > 0.0 && p.colour_lr <= 1.0) {
+            return Err(ParamError {
+                path: "colour_lr".into(),
+                message: format!("must be in (0, 1], found {}", p.colour_lr),
+            });
+        }
         Ok(())
     }
 
@@ -1030,6 +1036,22 @@ fn pair_nearest(a: &[DVec3], b: &[DVec3]) -> Option<Vec<usize>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_colour_rate_out_of_range_is_refused_by_name() {
+        let ok: EvaluateParams = serde_json::from_value(json!({})).unwrap();
+        assert_eq!((ok.colour_epochs, ok.colour_lr), (20, 0.005));
+        assert!(Evaluate.validate(&ok).is_ok());
+        for bad in [-1.0f32, 0.0, f32::NAN, 2.0] {
+            let p = EvaluateParams {
+                colour_lr: bad,
+                ..ok.clone()
+            };
+            let e = Evaluate.validate(&p).unwrap_err();
+            assert_eq!(e.path, "colour_lr");
+            assert!(e.message.contains(&bad.to_string()), "{}", e.message);
+        }
+    }
 
     fn ring(n: usize, turn: f64) -> Vec<DVec3> {
         (0..n)
