@@ -18,7 +18,8 @@ use super::pose::Pose;
 use super::rollout::{FrameLoss, RolloutError};
 use crate::scene::gaussians::{Gaussians, sh_coeffs};
 use crate::scene::shading::{Relight, relit_sh};
-use crate::scene::targets::{Target, view_loss};
+use crate::scene::splat::render_gaussians_sh;
+use crate::scene::targets::{Target, over_black, view_loss};
 use crate::stages::warmup::adam::{AdamConfig, AdamState};
 
 /// How the colours are refitted.
@@ -91,7 +92,7 @@ impl FrameLoss for MotionRecorder<'_> {
 }
 
 /// What the refit did.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct ColourFitReport {
     /// Mean image loss over the training images in each epoch (each image scored at the
     /// colours it was rendered with).
@@ -118,10 +119,7 @@ pub fn refit_colours(
 ) -> Result<(Vec<f32>, ColourFitReport), String> {
     let per = 3 * sh_coeffs(g.sh_degree);
     let mut sh = g.sh.clone();
-    let mut report = ColourFitReport {
-        epoch_loss: Vec::new(),
-        images: 0,
-    };
+    let mut report = ColourFitReport::default();
     let images: Vec<(&PosedFrame, &Target, Vec<f32>)> = motion
         .iter()
         .flat_map(|m| {
@@ -137,16 +135,13 @@ pub fn refit_colours(
     }
     let mut adam = AdamState::new(per, g.len());
     let cfg = AdamConfig::default();
-    let opts = pipe_render::RenderOptions {
-        background: [0.0; 3],
-        ..Default::default()
-    };
     let steps = images.len() as f64 * f64::from(fit.epochs);
     let mut step = 0u32;
     for _ in 0..fit.epochs {
         let mut total = 0.0;
         for (m, target, plate) in &images {
-            let (loss, grad) = image_loss(g, &sh, m, target, plate, fit.lambda, &opts)?;
+            let (loss, grad) = image_loss(g, &sh, m, target, plate, fit.lambda, true)?;
+            let grad = grad.expect("asked for");
             total += loss;
             let lr = fit.lr * 0.1f32.powf((f64::from(step) / steps) as f32);
             step += 1;
@@ -172,23 +167,19 @@ pub fn mean_loss(
     backdrop: [f32; 3],
     lambda: f64,
 ) -> Result<Option<f64>, String> {
-    let opts = pipe_render::RenderOptions {
-        background: [0.0; 3],
-        ..Default::default()
-    };
     let (mut total, mut n) = (0.0, 0usize);
     for m in motion {
         for t in targets.iter().filter(|t| t.row.frame == m.frame) {
             let plate = t.backdrop(backdrop);
-            total += image_loss(g, sh, m, t, &plate, lambda, &opts)?.0;
+            total += image_loss(g, sh, m, t, &plate, lambda, false)?.0;
             n += 1;
         }
     }
     Ok((n > 0).then(|| total / n as f64))
 }
 
-/// The loss of one image with the albedo coefficients `sh` posed as `m` has it, and its
-/// gradient with respect to `sh`.
+/// The loss of one image with the albedo coefficients `sh` posed as `m` has it and, with
+/// `gradient`, its gradient with respect to `sh`.
 fn image_loss(
     g: &Gaussians,
     sh: &[f32],
@@ -196,24 +187,26 @@ fn image_loss(
     target: &Target,
     plate: &[f32],
     lambda: f64,
-    opts: &pipe_render::RenderOptions<f32>,
-) -> Result<(f64, Vec<f32>), String> {
+    gradient: bool,
+) -> Result<(f64, Option<Vec<f32>>), String> {
     let (frame, view) = (m.frame, target.row.view);
     let fail = |what: String| format!("refitting the colours, frame {frame} view {view}: {what}");
     let per = 3 * sh_coeffs(g.sh_degree);
     let shown = (!m.gains.is_empty()).then(|| relit_sh(sh, g.sh_degree, &m.gains));
-    let mut base = crate::scene::splat::render_gaussians(g);
-    base.colors = pipe_render::Colors::Sh {
-        degree: u32::from(g.sh_degree),
-        coeffs: shown.as_deref().unwrap_or(sh).as_chunks::<3>().0,
-    };
-    let posed = m.pose.apply(base);
-    let out = pipe_render::render(&posed, &target.camera, opts).map_err(|e| fail(e.to_string()))?;
+    let posed = m
+        .pose
+        .apply(render_gaussians_sh(g, shown.as_deref().unwrap_or(sh)));
+    let opts = over_black();
+    let out =
+        pipe_render::render(&posed, &target.camera, &opts).map_err(|e| fail(e.to_string()))?;
     let l = view_loss(&out, target, plate, lambda, 0.0).map_err(|e| fail(e.to_string()))?;
     if !l.loss.is_finite() {
         return Err(fail(format!("the loss is {}", l.loss)));
     }
-    let gr = pipe_render::backward(&posed, &target.camera, opts, &out, &l.d_image, None)
+    if !gradient {
+        return Ok((l.loss, None));
+    }
+    let gr = pipe_render::backward(&posed, &target.camera, &opts, &out, &l.d_image, None)
         .map_err(|e| fail(e.to_string()))?;
     let mut grad = gr.sh.as_flattened().to_vec();
     if grad.len() != sh.len() {
@@ -233,7 +226,7 @@ fn image_loss(
             i / per
         )));
     }
-    Ok((l.loss, grad))
+    Ok((l.loss, Some(grad)))
 }
 
 #[cfg(test)]
@@ -325,18 +318,14 @@ mod tests {
             } else {
                 relit_sh(&truth.sh, 0, &m.gains)
             };
-            let mut base = crate::scene::splat::render_gaussians(truth);
-            base.colors = pipe_render::Colors::Sh {
-                degree: 0,
-                coeffs: sh.as_chunks::<3>().0,
-            };
+            let base = render_gaussians_sh(truth, &sh);
             for (view, eye) in [
                 (0u16, DVec3::new(0.0, 0.6, 1.4)),
                 (1, DVec3::new(1.2, 0.5, -0.6)),
             ] {
                 let row = row(view, m.frame, eye);
                 let camera = render_camera(&Camera::from_row(&row));
-                let r = pipe_render::render(&m.pose.apply(base), &camera, &opts()).unwrap();
+                let r = pipe_render::render(&m.pose.apply(base), &camera, &over_black()).unwrap();
                 assert!(
                     r.alpha.iter().any(|a| *a > 0.5),
                     "view {view} sees the ring"
@@ -351,13 +340,6 @@ mod tests {
             }
         }
         out
-    }
-
-    fn opts() -> pipe_render::RenderOptions<f32> {
-        pipe_render::RenderOptions {
-            background: [0.0; 3],
-            ..Default::default()
-        }
     }
 
     /// Colours of six Gaussians, the second half brighter.
@@ -379,8 +361,10 @@ mod tests {
         let t = targets(&truth, &motion);
         let start = ring(&[[0.1, 0.2, -0.1]; 6]);
         let plate = [1.0f32; 3].repeat(48 * 48);
-        let loss = |sh: &[f32]| image_loss(&start, sh, &motion[0], &t[0], &plate, 0.2, &opts());
-        let (l0, grad) = loss(&start.sh).unwrap();
+        let loss =
+            |sh: &[f32], gradient| image_loss(&start, sh, &motion[0], &t[0], &plate, 0.2, gradient);
+        let (l0, grad) = loss(&start.sh, true).unwrap();
+        let grad = grad.expect("asked for");
         assert!(l0.is_finite() && l0 > 1e-3, "{l0}");
         assert_eq!(grad.len(), start.sh.len());
         let h = 1e-2f32;
@@ -390,7 +374,8 @@ mod tests {
             up[k] += h;
             let mut down = start.sh.clone();
             down[k] -= h;
-            let fd = (loss(&up).unwrap().0 - loss(&down).unwrap().0) / f64::from(2.0 * h);
+            let fd =
+                (loss(&up, false).unwrap().0 - loss(&down, false).unwrap().0) / f64::from(2.0 * h);
             let an = f64::from(grad[k]);
             if fd.abs() > 1e-4 {
                 checked += 1;

@@ -64,10 +64,7 @@ impl<'a> ViewsLoss<'a> {
             fluid,
             by_frame,
             weights,
-            opts: pipe_render::RenderOptions {
-                background: [0.0; 3],
-                ..Default::default()
-            },
+            opts: crate::scene::targets::over_black(),
             psnr: BTreeMap::new(),
         }
     }

@@ -41,6 +41,19 @@ pub fn render_gaussians(g: &Gaussians) -> pipe_render::Gaussians<'_, f32> {
     }
 }
 
+/// [`render_gaussians`] with other SH coefficients `sh` (`[gaussian][coeff][channel]`, the
+/// Gaussians' degree) in place of theirs: re-lit or refitted colours.
+pub fn render_gaussians_sh<'a>(g: &'a Gaussians, sh: &'a [f32]) -> pipe_render::Gaussians<'a, f32> {
+    debug_assert_eq!(sh.len(), g.sh.len());
+    pipe_render::Gaussians {
+        colors: pipe_render::Colors::Sh {
+            degree: u32::from(g.sh_degree),
+            coeffs: sh.as_chunks::<3>().0,
+        },
+        ..render_gaussians(g)
+    }
+}
+
 /// Convert a rendered float image (`[H][W]` RGB in [0, 1]) to 8-bit RGB bytes.
 pub fn to_rgb8(pixels: &[[f32; 3]]) -> Vec<u8> {
     pixels

@@ -122,6 +122,18 @@ pub fn load(dir: &Path, rows: &[&FrameRow]) -> Result<Vec<Target>, TargetError> 
         .collect()
 }
 
+/// `λ` of `λ·L1 + (1 − λ)·D-SSIM`: every fitting stage's default (3DGS weighs D-SSIM 0.2;
+/// these fits weigh it more, 0.9).
+pub const DEFAULT_LAMBDA: f64 = 0.1;
+
+/// The rasterizer's options for a render composited afterwards: over black.
+pub fn over_black() -> pipe_render::RenderOptions<f32> {
+    pipe_render::RenderOptions {
+        background: [0.0; 3],
+        ..Default::default()
+    }
+}
+
 /// The rendered object (rendered over black) composited over a per-pixel backdrop:
 /// `I = C + (1 − α)·B`.
 pub fn composite(out: &pipe_render::Rendered<f32>, backdrop: &[f32]) -> Vec<f32> {

@@ -632,14 +632,10 @@ fn write_refitted(all: &Gaussians, refitted: &Gaussians, out: &Path) -> Result<(
 /// The refitted canonical Gaussians `evaluate` writes when it keeps the colour refit.
 pub const GAUSSIANS_FILE: &str = "gaussians.arrow";
 
-/// `λ` of the refit's `λ·L1 + (1 − λ)·D-SSIM`: the fitting stages' default.
-const LAMBDA_DSSIM: f64 = 0.1;
-
 /// Refits the canonical colours along the learned motion (a rollout recording every frame's
 /// pose), first on the training views but a held-out few (half the passes); when that lowers
 /// the held-out views' loss, again on every training view, whose colours are returned (else `None`: the
 /// warm-up's colours stay). Logs and records the loss per pass.
-#[allow(clippy::too_many_arguments)]
 fn refit_colours(
     ctx: &mut StageContext<'_>,
     shading: Option<&Relight>,
@@ -657,7 +653,7 @@ fn refit_colours(
     let fit = ColourFit {
         epochs: p.colour_epochs,
         lr: p.colour_lr,
-        lambda: LAMBDA_DSSIM,
+        lambda: targets::DEFAULT_LAMBDA,
     };
     let g = &object.gaussians;
     let train: Vec<&Target> = targets
@@ -693,13 +689,7 @@ fn refit_colours(
             appearance::refit_colours(g, &motion.frames, &train, background, &fit).map_err(fail)?;
         (Some(sh), report)
     } else {
-        (
-            None,
-            appearance::ColourFitReport {
-                epoch_loss: Vec::new(),
-                images: 0,
-            },
-        )
+        (None, appearance::ColourFitReport::default())
     };
     for (epoch, loss) in report.epoch_loss.iter().enumerate() {
         ctx.metric(MetricRow {
@@ -870,18 +860,11 @@ impl FrameLoss for Scorer<'_> {
         let relit = self
             .shading
             .map(|r| r.sh(&self.gaussians.sh, self.gaussians.sh_degree, &state.f[..n]));
-        let mut base = crate::scene::splat::render_gaussians(self.gaussians);
-        if let (Some(sh), pipe_render::Colors::Sh { degree, .. }) = (&relit, base.colors) {
-            base.colors = pipe_render::Colors::Sh {
-                degree,
-                coeffs: sh.as_chunks::<3>().0,
-            };
-        }
-        let g = pose.apply(base);
-        let opts = pipe_render::RenderOptions {
-            background: [0.0; 3],
-            ..Default::default()
-        };
+        let g = pose.apply(crate::scene::splat::render_gaussians_sh(
+            self.gaussians,
+            relit.as_deref().unwrap_or(&self.gaussians.sh),
+        ));
+        let opts = targets::over_black();
         for t in self.targets.iter().filter(|t| t.row.frame == frame) {
             let view = t.row.view;
             let (w, h) = t.size();

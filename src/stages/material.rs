@@ -155,7 +155,7 @@ fn probe_decades() -> f64 {
 /// A probe is taken when it lowers the loss by more than this fraction (the stall rule's).
 const PROBE_GAIN: f64 = 1e-3;
 fn lambda() -> f64 {
-    0.1
+    crate::scene::targets::DEFAULT_LAMBDA
 }
 fn alpha_weight() -> f64 {
     0.1

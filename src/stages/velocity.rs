@@ -141,7 +141,7 @@ fn cells() -> f64 {
     24.0
 }
 fn lambda() -> f64 {
-    0.1
+    crate::scene::targets::DEFAULT_LAMBDA
 }
 fn alpha_weight() -> f64 {
     0.1

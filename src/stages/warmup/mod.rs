@@ -122,7 +122,7 @@ pub mod schemas {
         200
     }
     fn lambda() -> f64 {
-        0.1
+        crate::scene::targets::DEFAULT_LAMBDA
     }
     fn lr_position() -> f32 {
         1.6e-4
