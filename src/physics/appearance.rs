@@ -67,13 +67,12 @@ impl<'a> MotionRecorder<'a> {
 
     /// Records `state` as frame `frame`.
     pub fn record(&mut self, frame: u16, state: &State) {
-        let n = self.object.rendered();
         let gains = self
             .shading
-            .map_or_else(Vec::new, |r| r.gains(&state.f[..n]));
+            .map_or_else(Vec::new, |r| r.gains(&self.object.gaussian_f(&state.f)));
         self.frames.push(PosedFrame {
             frame,
-            pose: Pose::of(state, n, self.fluid),
+            pose: Pose::of(state, self.object.skin(), self.fluid),
             gains,
         });
     }
@@ -303,7 +302,7 @@ mod tests {
         s.f.iter_mut().for_each(|f| *f = q);
         PosedFrame {
             frame,
-            pose: Pose::of(&s, g.len(), false),
+            pose: Pose::of(&s, &crate::simulate::skin::Skin::identity(g.len()), false),
             gains,
         }
     }

@@ -1,6 +1,8 @@
 //! The simulated object of a capture: its canonical Gaussians become simulation particles,
-//! as `pipe simulate` makes a 3DGS PLY one (the same [`Body`]): each Gaussian is a particle,
-//! a closed splat surface is filled with particles inside (simulated, not rendered), and the
+//! as `pipe simulate` makes a 3DGS PLY one (the same [`Body`], `merge_splats`): the Gaussians
+//! that share a voxel of the filling (edge `dx/2`) ride one particle
+//! ([`crate::simulate::skin`]), a closed splat surface is filled with particles inside
+//! (simulated, not rendered), and the
 //! mass follows `scene.density` and the filled volume: the solid the splats render in the
 //! images they were fitted to, so their field includes the rasterizer's low-pass filter at
 //! those images' resolution ([`render_filter`]).
@@ -13,7 +15,7 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use glam::{DVec3, IVec3};
+use glam::{DMat3, DVec3, IVec3};
 
 use crate::pipeline::spec::{BoundaryCondition, BoundaryItem, SceneSpec};
 use crate::scene::frames::FrameRow;
@@ -51,25 +53,57 @@ pub struct ObjectSettings<'a> {
 /// The simulated object.
 #[derive(Debug, Clone)]
 pub struct Object {
-    /// The simulated Gaussians, canonical: Gaussian `i` is particle `i` of `body`.
+    /// The simulated Gaussians, canonical: Gaussian `g` rides particle `body.skin.carrier[g]`.
     pub gaussians: Gaussians,
     /// Gaussians dropped as floaters.
     pub floaters: usize,
     /// The simulation file the body was built from (at the material it was built with).
     pub spec: SimSpec,
-    /// Particles (the Gaussians, then the fillers), their settings and material.
+    /// Particles (those that carry the Gaussians, then the fillers), their settings and
+    /// material.
     pub body: Body,
 }
 
 impl Object {
-    /// Particles (Gaussians and fillers).
+    /// Particles (carriers of Gaussians and fillers).
     pub fn particles(&self) -> usize {
         self.body.state.len()
     }
 
-    /// Particles that are Gaussians (the first ones).
+    /// Gaussians rendered.
     pub fn rendered(&self) -> usize {
         self.gaussians.len()
+    }
+
+    /// Particles that carry Gaussians (the first ones).
+    pub fn carriers(&self) -> usize {
+        self.body.n_input
+    }
+
+    /// `N particles: C carrying G Gaussians, F fillers`, for the stages' logs.
+    pub fn particle_summary(&self) -> String {
+        format!(
+            "{} particles: {} carrying {} Gaussians, {} fillers",
+            self.particles(),
+            self.carriers(),
+            self.rendered(),
+            self.particles() - self.carriers()
+        )
+    }
+
+    /// How the Gaussians ride the particles.
+    pub fn skin(&self) -> &crate::simulate::skin::Skin {
+        &self.body.skin
+    }
+
+    /// Each Gaussian's deformation gradient: its carrier's `F` in `f` (one per particle).
+    pub fn gaussian_f<'a>(&self, f: &'a [DMat3]) -> std::borrow::Cow<'a, [DMat3]> {
+        let n = self.carriers();
+        if self.body.skin.is_identity() {
+            std::borrow::Cow::Borrowed(&f[..n])
+        } else {
+            std::borrow::Cow::Owned(self.body.skin.gather(&f[..n]))
+        }
     }
 
     /// The re-lighting of the Gaussians when the body deforms ([`crate::scene::shading`]):
@@ -279,6 +313,8 @@ pub fn sim_yaml(
     if let Some(f) = fill_interior {
         let _ = writeln!(t, "fill_interior: {f}");
     }
+    // The splats that share a voxel of the filling ride one particle (`simulate::skin`).
+    let _ = writeln!(t, "merge_splats: true");
     if scene.boundaries.is_empty() {
         let _ = writeln!(t, "boundaries: []");
     } else {

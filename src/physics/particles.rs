@@ -17,9 +17,10 @@ use crate::scene::table::{self, Table, TableError, column};
 /// One row per simulated particle.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct MaterialParticles {
-    /// The Gaussian's id, `None` for a filler.
+    /// The id of the first Gaussian the particle carries (the others of its voxel ride it too,
+    /// `simulate::skin`), `None` for a filler.
     pub id: Vec<Option<u32>>,
-    /// Whether the particle renders (a Gaussian) or only simulates (a filler).
+    /// Whether the particle carries Gaussians or only simulates (a filler).
     pub rendered: Vec<bool>,
     /// Position at frame 0 (m).
     pub x: Vec<[f32; 3]>,
@@ -141,7 +142,11 @@ pub fn write(
     v0: &[DVec3],
 ) -> Result<(), TableError> {
     let n = object.particles();
-    let r = object.rendered();
+    let r = object.carriers();
+    let mut first = vec![None; r];
+    for (g, &c) in object.skin().carrier.iter().enumerate().rev() {
+        first[c as usize] = Some(object.gaussians.id[g]);
+    }
     let fluid = matches!(
         material.family,
         crate::pipeline::spec::MaterialFamily::Newtonian
@@ -149,7 +154,7 @@ pub fn write(
     let each = |p: Param| vec![material.get(p); n];
     let t = MaterialParticles {
         id: (0..n)
-            .map(|i| (i < r).then(|| object.gaussians.id[i]))
+            .map(|i| if i < r { first[i] } else { None })
             .collect(),
         rendered: (0..n).map(|i| i < r).collect(),
         x: object

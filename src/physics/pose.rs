@@ -1,7 +1,8 @@
 //! The object's Gaussians at a simulated state, and the way back (PhysGaussian §4.1): Gaussian
-//! `i` sits at its particle's position `x_i` with covariance `F_i Σ_i F_iᵀ`, and its SH show
-//! towards a direction `d` what they showed towards `R_iᵀ d`, `R_i` the rotation of the polar
-//! decomposition `F_i = R_i S_i`. A Newtonian fluid's `F` holds only its volume ratio
+//! `g` sits at its carrier particle `c` ([`crate::simulate::skin`]), at `x_c + F_c d_g`, with
+//! covariance `F_c Σ_g F_cᵀ`, and its SH show
+//! towards a direction `d` what they showed towards `R_cᵀ d`, `R_c` the rotation of the polar
+//! decomposition `F_c = R_c S_c`. A Newtonian fluid's `F` holds only its volume ratio
 //! (`diag(J, 1, 1)`): its Gaussians swell or shrink evenly, `J^{1/3} I`, and do not turn.
 //!
 //! [`Pose::seed`] turns the rasterizer's gradients into `∂L/∂x` and `∂L/∂F` of the particles,
@@ -14,6 +15,8 @@ use pipe_mpm::{State, StateGrad};
 use pipe_render::Real;
 use rayon::prelude::*;
 
+use crate::simulate::skin::Skin;
+
 /// Row-major entries of a matrix, as the rasterizer takes them.
 fn rows<T: Real>(m: &DMat3) -> [T; 9] {
     std::array::from_fn(|k| T::from_f64(m.col(k % 3)[k / 3]))
@@ -24,33 +27,59 @@ fn from_rows<T: Real>(r: &[T; 9]) -> DMat3 {
     DMat3::from_cols_array(&std::array::from_fn(|k| r[3 * (k % 3) + k / 3].to_f64()))
 }
 
-/// The Gaussians of the first particles of a state, ready to render.
+/// The Gaussians' centres: each carrier's position plus its neighbourhood's map `a(c, d_g)`
+/// of the Gaussian's rest offset (the carriers' positions as they are for the identity skin).
+fn means_of<T: Real>(
+    state: &State,
+    skin: &Skin,
+    identity: bool,
+    a: impl Fn(usize, DVec3) -> DVec3,
+) -> Vec<[T; 3]> {
+    if identity {
+        return state.x[..skin.len()]
+            .iter()
+            .map(|x| x.to_array().map(T::from_f64))
+            .collect();
+    }
+    skin.carrier
+        .iter()
+        .zip(&skin.offset)
+        .map(|(&c, d)| {
+            let c = c as usize;
+            (state.x[c] + a(c, *d)).to_array().map(T::from_f64)
+        })
+        .collect()
+}
+
+/// The Gaussians of a state, ready to render: each at its carrier particle
+/// ([`crate::simulate::skin`]).
 #[derive(Debug, Clone)]
 pub struct Pose<T> {
-    /// Centres (m).
+    /// Centres (m), one per Gaussian.
     pub means: Vec<[T; 3]>,
     /// The deformation each Gaussian's covariance takes (row-major).
     pub f: Vec<[T; 9]>,
     /// The rotation its SH turn with (row-major); empty for a fluid.
     pub r: Vec<[T; 9]>,
-    /// The particles' `F` (solids) and its polar rotation, for the adjoint.
+    /// The carrier particles' `F` (solids) and its polar rotation, for the adjoint.
     f_r: Vec<(DMat3, DMat3)>,
-    /// Fluids: the volume ratio `J` of each particle.
+    /// Fluids: the volume ratio `J` of each carrier particle.
     j: Vec<f64>,
 }
 
 impl<T: Real> Pose<T> {
-    /// The first `n` particles of `state`; `fluid` for a Newtonian fluid.
-    pub fn of(state: &State, n: usize, fluid: bool) -> Self {
-        let means = state.x[..n]
-            .iter()
-            .map(|x| x.to_array().map(T::from_f64))
-            .collect();
+    /// The Gaussians of `skin` on the particles of `state`; `fluid` for a Newtonian fluid.
+    pub fn of(state: &State, skin: &Skin, fluid: bool) -> Self {
+        let n = skin.particles();
+        let identity = skin.is_identity();
         if fluid {
             let j: Vec<f64> = state.f[..n].iter().map(|f| f.x_axis.x).collect();
-            let f = j
+            let scale: Vec<f64> = j.iter().map(|&j| j.max(0.0).cbrt()).collect();
+            let means = means_of(state, skin, identity, |c, d| d * scale[c]);
+            let f = skin
+                .carrier
                 .iter()
-                .map(|&j| rows(&DMat3::from_diagonal(DVec3::splat(j.max(0.0).cbrt()))))
+                .map(|&c| rows(&DMat3::from_diagonal(DVec3::splat(scale[c as usize]))))
                 .collect();
             return Self {
                 means,
@@ -65,16 +94,23 @@ impl<T: Real> Pose<T> {
             .with_min_len(1024)
             .map(|f| (*f, polar_rotation(f)))
             .collect();
+        let means = means_of(state, skin, identity, |c, d| f_r[c].0 * d);
+        let (f, r): (Vec<_>, Vec<_>) = if identity {
+            f_r.iter().map(|(f, r)| (rows(f), rows(r))).unzip()
+        } else {
+            let per: Vec<([T; 9], [T; 9])> = f_r.iter().map(|(f, r)| (rows(f), rows(r))).collect();
+            skin.carrier.iter().map(|&c| per[c as usize]).unzip()
+        };
         Self {
             means,
-            f: f_r.iter().map(|(f, _)| rows(f)).collect(),
-            r: f_r.iter().map(|(_, r)| rows(r)).collect(),
+            f,
+            r,
             f_r,
             j: Vec::new(),
         }
     }
 
-    /// Particles posed.
+    /// Gaussians posed.
     pub fn len(&self) -> usize {
         self.means.len()
     }
@@ -84,7 +120,7 @@ impl<T: Real> Pose<T> {
         self.means.is_empty()
     }
 
-    /// The canonical Gaussians `base` (one per posed particle) in this pose: moved, deformed
+    /// The canonical Gaussians `base` (one per posed Gaussian) in this pose: moved, deformed
     /// and turned.
     pub fn apply<'a>(
         &'a self,
@@ -101,37 +137,58 @@ impl<T: Real> Pose<T> {
         }
     }
 
-    /// Adds the gradients of one render in this pose (`∂L/∂means`, `∂L/∂F`, `∂L/∂R`) into the
-    /// particles' `∂L/∂x` and `∂L/∂F` (`out` holds every particle; the posed ones first).
-    pub fn seed(&self, grads: &pipe_render::Gradients<T>, out: &mut StateGrad) {
-        let n = self.len();
-        for (o, g) in out.x[..n].iter_mut().zip(&grads.means) {
-            *o += DVec3::from_array(g.map(T::to_f64));
+    /// Adds the gradients of one render in this pose (`∂L/∂means`, `∂L/∂F`, `∂L/∂R` of each
+    /// Gaussian) into the carrier particles' `∂L/∂x` and `∂L/∂F` (`out` holds every particle;
+    /// the carriers first), through `x_g = x_c + A_c d_g` of `skin`, the one it was posed with.
+    pub fn seed(&self, skin: &Skin, grads: &pipe_render::Gradients<T>, out: &mut StateGrad) {
+        debug_assert_eq!(skin.len(), self.len());
+        let n = skin.particles();
+        let gm = |g: usize| DVec3::from_array(grads.means[g].map(T::to_f64));
+        for (g, &c) in skin.carrier.iter().enumerate() {
+            out.x[c as usize] += gm(g);
         }
         if !self.j.is_empty() {
-            // F_render = J^{1/3} I: ∂L/∂J = tr(∂L/∂F_render) · J^{-2/3} / 3.
-            for ((o, g), &j) in out.f[..n].iter_mut().zip(&grads.deformation).zip(&self.j) {
-                let tr = (g[0] + g[4] + g[8]).to_f64();
+            // A = J^{1/3} I: ∂L/∂J = (tr(∂L/∂A) + ∂L/∂x_g · d_g) · J^{-2/3} / 3.
+            let mut gj = vec![0.0; n];
+            for (g, (&c, d)) in skin.carrier.iter().zip(&skin.offset).enumerate() {
+                let a = &grads.deformation[g];
+                gj[c as usize] += (a[0] + a[4] + a[8]).to_f64() + gm(g).dot(*d);
+            }
+            for ((o, gj), &j) in out.f[..n].iter_mut().zip(gj).zip(&self.j) {
                 let c = j.max(1e-12).cbrt();
-                o.x_axis.x += tr / (3.0 * c * c);
+                o.x_axis.x += gj / (3.0 * c * c);
             }
             return;
         }
-        let gf: Vec<DMat3> = (0..n)
+        // Per carrier: ∂L/∂F from the covariances and the offsets (∂L/∂x_g d_gᵀ), ∂L/∂R.
+        let mut gf = vec![DMat3::ZERO; n];
+        let mut gr: Vec<Option<DMat3>> = vec![None; n];
+        for (g, (&c, d)) in skin.carrier.iter().zip(&skin.offset).enumerate() {
+            let c = c as usize;
+            gf[c] += from_rows(&grads.deformation[g]);
+            if *d != DVec3::ZERO {
+                let m = gm(g);
+                gf[c] += DMat3::from_cols(m * d.x, m * d.y, m * d.z);
+            }
+            if let Some(r) = grads.sh_rotation.get(g) {
+                let r = from_rows(r);
+                gr[c] = Some(gr[c].map_or(r, |s| s + r));
+            }
+        }
+        let adj: Vec<DMat3> = (0..n)
             .into_par_iter()
             .with_min_len(1024)
-            .map(|i| {
-                let mut g = from_rows(&grads.deformation[i]);
-                if let Some(gr) = grads.sh_rotation.get(i) {
-                    let gr = from_rows(gr);
-                    let (f, r) = &self.f_r[i];
-                    g += polar_rotation_adjoint(f, r, &gr)
-                        .unwrap_or_else(|| rotation_adjoint(&svd3(f), &gr));
+            .map(|c| {
+                let mut g = gf[c];
+                if let Some(gr) = &gr[c] {
+                    let (f, r) = &self.f_r[c];
+                    g += polar_rotation_adjoint(f, r, gr)
+                        .unwrap_or_else(|| rotation_adjoint(&svd3(f), gr));
                 }
                 g
             })
             .collect();
-        for (o, g) in out.f[..n].iter_mut().zip(gf) {
+        for (o, g) in out.f[..n].iter_mut().zip(adj) {
             *o += g;
         }
     }

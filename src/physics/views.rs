@@ -86,7 +86,7 @@ impl FrameLoss for ViewsLoss<'_> {
             return Ok(0.0);
         };
         let fail = |message: String| RolloutError::Loss { frame, message };
-        let pose = Pose::<f32>::of(state, self.object.rendered(), self.fluid);
+        let pose = Pose::<f32>::of(state, self.object.skin(), self.fluid);
         let g = pose.apply(crate::scene::splat::render_gaussians(
             &self.object.gaussians,
         ));
@@ -131,7 +131,7 @@ impl FrameLoss for ViewsLoss<'_> {
                          view {view}"
                     )));
                 }
-                pose.seed(&gr, grad);
+                pose.seed(self.object.skin(), &gr, grad);
             }
         }
         self.psnr.insert(frame, psnr);

@@ -45,23 +45,17 @@ fn basis(n: DVec3) -> DVec4 {
     DVec4::new(1.0, n.x, n.y, n.z)
 }
 
-/// Outward unit normal of each of the first `rendered` particles at rest, with a confidence in
-/// `[0, 1]`: away from the volume-weighted centroid of the particles within `radius` (m). The
+/// Outward unit normal at each point `at` (the Gaussians at rest), with a confidence in
+/// `[0, 1]`: away from the volume-weighted centroid of the particles `x` within `radius` (m). The
 /// confidence is the centroid's offset over `radius / 4` (capped at 1): a point on a surface
 /// has its neighbours on one side, one deep inside or on a thin sheet has them all round.
-pub fn rest_normals(
-    x: &[DVec3],
-    volume: &[f64],
-    rendered: usize,
-    radius: f64,
-) -> Vec<(DVec3, f64)> {
+pub fn rest_normals(x: &[DVec3], volume: &[f64], at: &[DVec3], radius: f64) -> Vec<(DVec3, f64)> {
     assert_eq!(x.len(), volume.len(), "one volume per particle");
     if x.is_empty() || !(radius.is_finite() && radius > 0.0) {
-        return vec![(DVec3::ZERO, 0.0); rendered.min(x.len())];
+        return vec![(DVec3::ZERO, 0.0); at.len()];
     }
     let grid = PointGrid::new(x, radius);
-    x[..rendered.min(x.len())]
-        .par_iter()
+    at.par_iter()
         .with_min_len(256)
         .map(|&p| {
             let (mut sum, mut w) = (DVec3::ZERO, 0.0);
@@ -200,12 +194,17 @@ pub struct Relight {
 }
 
 impl Relight {
-    /// For the Gaussians `g`, the first particles of a body at rest `x` (m) with volumes
-    /// `volume` (m³) simulated on a grid of cell `dx` (m): normals from the particles within
+    /// For the Gaussians `g` (at rest) of a body whose particles at rest are `x` (m) with
+    /// volumes `volume` (m³), simulated on a grid of cell `dx` (m): normals from the particles within
     /// 1.5 cells, the irradiance fitted to the canonical colours; `None` when too few
     /// Gaussians have a normal.
     pub fn of(x: &[DVec3], volume: &[f64], g: &Gaussians, dx: f64) -> Option<Self> {
-        let normals = rest_normals(x, volume, g.len(), 1.5 * dx);
+        let at: Vec<DVec3> = g
+            .position
+            .iter()
+            .map(|p| DVec3::from_array(p.map(f64::from)))
+            .collect();
+        let normals = rest_normals(x, volume, &at, 1.5 * dx);
         let shading = Shading::fit(g, &normals)?;
         Some(Self { normals, shading })
     }
@@ -263,7 +262,7 @@ mod tests {
     #[test]
     fn a_balls_surface_points_outward_and_its_centre_has_no_normal() {
         let x = ball(0.1, 0.01);
-        let normals = rest_normals(&x, &vec![1e-6; x.len()], x.len(), 0.03);
+        let normals = rest_normals(&x, &vec![1e-6; x.len()], &x, 0.03);
         assert_eq!(normals.len(), x.len());
         let (mut surface, mut worst) = (0, 1.0f64);
         for (p, (n, conf)) in x.iter().zip(&normals) {
@@ -288,7 +287,7 @@ mod tests {
     fn a_lighting_baked_into_textured_colours_is_recovered_and_turns_with_the_body() {
         // A ball lit from above (irradiance e^{0.3 y}) with a random albedo per point.
         let x = ball(0.1, 0.01);
-        let normals = rest_normals(&x, &vec![1e-6; x.len()], x.len(), 0.03);
+        let normals = rest_normals(&x, &vec![1e-6; x.len()], &x, 0.03);
         let albedo = |i: usize| 0.3 + 0.4 * ((i * 7919 % 101) as f64 / 100.0);
         let g = splats(&x, |i| {
             let e = (0.3 * normals[i].0.y).exp() * 0.5;

@@ -138,6 +138,9 @@ impl Splat {
     }
 }
 
+/// [`InteriorFill::input_voxels`] of an input that shares no solid voxel.
+pub const NO_VOXEL: usize = usize::MAX;
+
 /// A ground plane under the object, perpendicular to an axis.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Floor {
@@ -157,6 +160,10 @@ pub struct InteriorFill {
     pub filler_volumes: Vec<f64>,
     /// Volume each input particle stands for (m³).
     pub input_volumes: Vec<f64>,
+    /// The solid voxel whose volume each input shares ([`NO_VOXEL`] for an input outside the
+    /// solid, and for every point of a cloud without splats): inputs of one voxel may ride one
+    /// particle ([`crate::simulate::skin`]).
+    pub input_voxels: Vec<usize>,
     /// Voxel edge `h` (m).
     pub voxel: f64,
     /// Wall voxels (splats' field or points) before thickening.
@@ -235,7 +242,7 @@ pub fn fill_interior(
         .filter(|&n| field.as_ref().is_none_or(|f| !f.solid(n)))
         .count();
     let h3 = voxel.powi(3);
-    let (points, filler_volumes, input_volumes) = match field {
+    let (points, filler_volumes, input_volumes, input_voxels) = match field {
         None => {
             // Fillers in the enclosed voxels; the points share their wall evenly.
             let wall: f64 = (0..grid.class.len())
@@ -244,7 +251,12 @@ pub fn fill_interior(
                 .sum();
             let (points, volumes) =
                 grid.fillers(&weight, |n| !matches!(grid.class[n], SURFACE | COVER));
-            (points, volumes, vec![wall * h3 / x.len() as f64; x.len()])
+            (
+                points,
+                volumes,
+                vec![wall * h3 / x.len() as f64; x.len()],
+                vec![NO_VOXEL; x.len()],
+            )
         }
         Some(_) => {
             // Each solid voxel's volume to the inputs centred in it or, for an input just
@@ -256,6 +268,7 @@ pub fn fill_interior(
                 .collect();
             cell.sort_unstable();
             let mut input_volumes = vec![STRAY_VOLUME * h3; x.len()];
+            let mut input_voxels = vec![NO_VOXEL; x.len()];
             let mut occupied = vec![false; grid.class.len()];
             for run in cell.chunk_by(|a, b| a.0 == b.0) {
                 let n = run[0].0;
@@ -264,16 +277,20 @@ pub fn fill_interior(
                 }
                 occupied[n] = true;
                 let share = weight[n] * h3 / run.len() as f64;
-                run.iter().for_each(|&(_, i)| input_volumes[i] = share);
+                run.iter().for_each(|&(_, i)| {
+                    input_volumes[i] = share;
+                    input_voxels[i] = n;
+                });
             }
             let (points, volumes) = grid.fillers(&weight, |n| !occupied[n]);
-            (points, volumes, input_volumes)
+            (points, volumes, input_volumes, input_voxels)
         }
     };
     Some(InteriorFill {
         points,
         filler_volumes,
         input_volumes,
+        input_voxels,
         voxel,
         wall_voxels,
         enclosed_voxels,

@@ -25,8 +25,10 @@
 pub mod fill;
 pub mod output;
 pub mod setup;
+pub mod skin;
 pub mod spec;
 
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -278,6 +280,7 @@ pub fn run_with(
         progress.log(&format!("warning: {w}"));
     }
     let setup = body.setup.clone();
+    let carriers = body.n_input;
     let job = Job {
         spec: &spec,
         body,
@@ -312,6 +315,7 @@ pub fn run_with(
         simulated_time_s: f64::from(frames - 1) * spec.frame_dt,
         particles_in: n,
         particles_out: done.particles_out,
+        carrier_particles: carriers,
         spacing_m: setup.spacing.map(|s| s.spacing),
         median_nn_distance_m: setup.spacing.map(|s| s.median_nn),
         dx_m: setup.dx,
@@ -366,8 +370,12 @@ pub struct Body {
     pub state: State,
     /// The file's material per particle (fillers have their own volume and mass).
     pub material: Material,
-    /// Input particles (the first ones of `state`).
+    /// Input particles (the first ones of `state`): the inputs, or the particles that carry
+    /// them when splats were merged.
     pub n_input: usize,
+    /// How the input points ride the first `n_input` particles (identity unless
+    /// `merge_splats` merged them).
+    pub skin: skin::Skin,
 }
 
 impl Body {
@@ -380,8 +388,15 @@ impl Body {
         splats: &[Splat],
         frames: u32,
     ) -> Result<Self, SimulateError> {
+        let mut setup = setup::setup(spec, source, (&x0, splats), frames)?;
+        let (x0, skin) = match setup.carriers.take() {
+            Some((carriers, skin)) => (carriers, skin),
+            None => {
+                let n = x0.len();
+                (x0, skin::Skin::identity(n))
+            }
+        };
         let n = x0.len();
-        let setup = setup::setup(spec, source, (&x0, splats), frames)?;
         let n_all = n + setup.fill.len();
         let mut material = spec
             .material
@@ -408,7 +423,32 @@ impl Body {
             state,
             material,
             n_input: n,
+            skin,
         })
+    }
+
+    /// The input points at `state`: their positions (m), velocities (m/s) and the deformation
+    /// gradients their splats take ([`splat_deformation`]); through the skin when splats were
+    /// merged (each point at its carrier's `x + A d`, with its carrier's velocity and `F`).
+    pub fn input_pose<'s>(
+        &self,
+        family: crate::pipeline::spec::MaterialFamily,
+        state: &'s State,
+    ) -> InputPose<'s> {
+        let n = self.n_input;
+        let a = splat_deformation(family, &state.f[..n]);
+        if self.skin.is_identity() {
+            return InputPose {
+                x: Cow::Borrowed(&state.x[..n]),
+                v: Cow::Borrowed(&state.v[..n]),
+                f: a,
+            };
+        }
+        InputPose {
+            x: Cow::Owned(self.skin.positions(&state.x[..n], &a)),
+            v: Cow::Owned(self.skin.gather(&state.v[..n])),
+            f: Cow::Owned(self.skin.gather(&a)),
+        }
     }
 
     /// The simulator settings of this body under `spec`: its grid (following the particles,
@@ -436,6 +476,17 @@ impl Body {
         cfg.precision = precision;
         cfg
     }
+}
+
+/// The input points of a [`Body`] at a state ([`Body::input_pose`]).
+#[derive(Debug, Clone)]
+pub struct InputPose<'s> {
+    /// Positions (m).
+    pub x: Cow<'s, [DVec3]>,
+    /// Velocities (m/s).
+    pub v: Cow<'s, [DVec3]>,
+    /// The deformation gradients their splats take.
+    pub f: Cow<'s, [DMat3]>,
 }
 
 /// The splats of a 3DGS PLY's `n` Gaussians (`scale_*`, `rot_*`, `opacity` beside `x y z`),
@@ -653,9 +704,8 @@ impl Job<'_> {
                 self.out.display()
             ));
         }
-        // Only the input particles are written; the fillers follow them unseen.
-        let n_out = self.body.n_input;
-        let (gaussians, family) = (self.gaussians, spec.material.family);
+        // Only the input points are written; the fillers follow them unseen.
+        let (gaussians, family, body) = (self.gaussians, spec.material.family, &self.body);
         // The frames are written on a thread of their own, while the next one simulates
         // ([`output::write_frames`]); one frame waits at most.
         std::thread::scope(|scope| {
@@ -667,15 +717,12 @@ impl Job<'_> {
                     .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
             };
             let mut send = |frame: u32, state: &State, _: Option<&FrameStats>| {
+                let p = body.input_pose(family, state);
                 let splats = gaussians.map(|g| match frame {
                     0 => g.clone(),
-                    _ => deform(
-                        g,
-                        &state.x[..n_out],
-                        &splat_deformation(family, &state.f[..n_out]),
-                    ),
+                    _ => deform(g, &p.x, &p.f),
                 });
-                let out = FrameOut::new(frame, &state.x[..n_out], &state.v[..n_out], splats);
+                let out = FrameOut::new(frame, &p.x, &p.v, splats);
                 Ok(tx.send(ToWriter::Frame(Box::new(out))).is_ok())
             };
             let run = run_frames(
@@ -696,7 +743,7 @@ impl Job<'_> {
             let written = join(writer);
             match run? {
                 Some(run) if finish => written.map(|()| Done {
-                    particles_out: n_out,
+                    particles_out: self.body.skin.len(),
                     stats: run.stats,
                     warnings: run.warnings,
                     setup_s: run

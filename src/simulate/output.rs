@@ -224,6 +224,9 @@ pub struct Summary {
     pub particles_in: usize,
     /// Particles in every written frame (always equal to `particles_in`).
     pub particles_out: usize,
+    /// Simulation particles that carry them: `particles_in`, or fewer when `merge_splats`
+    /// let the splats of one voxel ride one particle.
+    pub carrier_particles: usize,
     /// Measured particle spacing (m; cube root of the volume per particle), when a default
     /// needed it.
     pub spacing_m: Option<f64>,
@@ -351,11 +354,16 @@ impl Summary {
             )
         };
         let mut text = format!(
-            "simulated {} frame(s) of {} particles ({}) in {:.1} s: {steps}; dx {} m, particle \
+            "simulated {} frame(s) of {} particles{} ({}) in {:.1} s: {steps}; dx {} m, particle \
              volume {} m^3, {}\nwrote {} frame PLYs{}, \
              particles.arrow and summary.json to {}",
             self.frames.saturating_sub(1),
             self.particles_out,
+            if self.carrier_particles == self.particles_out {
+                String::new()
+            } else {
+                format!(" (riding {} merged particles)", self.carrier_particles)
+            },
             super::spec::family_name(self.material.family),
             self.wall_time_s,
             short_number(self.dx_m),

@@ -77,6 +77,9 @@ pub struct Setup {
     pub colliders: Vec<Collider>,
     /// Forces with resolved particle indices.
     pub forces: Vec<ParticleForce>,
+    /// The particles that carry the input splats and how they ride them, when splats sharing
+    /// a voxel were merged (`merge_splats`); `None`: each input is a particle.
+    pub carriers: Option<(Vec<DVec3>, super::skin::Skin)>,
     /// Things the user should know.
     pub warnings: Vec<String>,
 }
@@ -207,6 +210,24 @@ pub fn setup(
                 unreachable!("spacing is measured when particle_volume is missing")
             }
         };
+    // Splats that share a voxel of the filling ride one particle ([`super::skin`]).
+    let merged = match (&voxels, spec.merge_splats && !splats.is_empty()) {
+        (Some(f), true) if fill_wanted && closed => Some(super::skin::merge(
+            x0,
+            &f.input_voxels,
+            input_volumes.as_deref().unwrap_or(&f.input_volumes),
+        )),
+        _ => None,
+    };
+    let inputs = x0;
+    let (x0, input_volumes, particle_volume) = match &merged {
+        Some(m) => (
+            m.particles.as_slice(),
+            Some(m.volumes.clone()),
+            m.volumes.iter().sum::<f64>() / m.volumes.len().max(1) as f64,
+        ),
+        None => (x0, input_volumes, particle_volume),
+    };
     warnings.extend(size_warnings(
         spec,
         spacing.filter(|_| !surface_like),
@@ -250,7 +271,7 @@ pub fn setup(
         .forces
         .iter()
         .enumerate()
-        .map(|(i, f)| resolve_force(spec, i, f, x0))
+        .map(|(i, f)| resolve_force(spec, i, f, x0, inputs.len(), merged.as_ref()))
         .collect::<Result<Vec<_>, _>>()?;
     warnings.extend(forces_outside_time(
         &forces,
@@ -308,6 +329,7 @@ pub fn setup(
         colliders,
         forces,
         warnings,
+        carriers: merged.map(|m| (m.particles, m.skin)),
     })
 }
 
@@ -581,14 +603,16 @@ fn resolve_force(
     i: usize,
     f: &ForceSpec,
     x0: &[DVec3],
+    inputs: usize,
+    merged: Option<&super::skin::Merged>,
 ) -> Result<ParticleForce, SimulateError> {
-    let n = x0.len();
+    let n = inputs;
     let path = format!("forces[{i}].particles");
     let set = match f {
         ForceSpec::Force { particles, .. } | ForceSpec::Impulse { particles, .. } => particles,
     };
     let particles: Vec<usize> = match set {
-        ParticleSet::All => (0..n).collect(),
+        ParticleSet::All => (0..x0.len()).collect(),
         ParticleSet::Indices(ids) => {
             if let Some((j, &bad)) = ids.iter().enumerate().find(|(_, p)| **p >= n as u64) {
                 return Err(spec.error_at(
@@ -600,11 +624,23 @@ fn resolve_force(
                     )),
                 ));
             }
-            ids.iter().map(|&p| p as usize).collect()
+            match merged {
+                // The particles that carry the listed splats, each once.
+                Some(m) => {
+                    let mut c: Vec<usize> = ids
+                        .iter()
+                        .map(|&p| m.skin.carrier[p as usize] as usize)
+                        .collect();
+                    c.sort_unstable();
+                    c.dedup();
+                    c
+                }
+                None => ids.iter().map(|&p| p as usize).collect(),
+            }
         }
         ParticleSet::Box(BoxSpec { min, max }) => {
             let b = Aabb::new(DVec3::from_array(*min), DVec3::from_array(*max));
-            let sel: Vec<usize> = (0..n).filter(|&p| b.contains(x0[p])).collect();
+            let sel: Vec<usize> = (0..x0.len()).filter(|&p| b.contains(x0[p])).collect();
             if sel.is_empty() {
                 let (lo, hi) = bounds(x0).expect("particles are not empty");
                 return Err(spec.error_at(

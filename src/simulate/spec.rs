@@ -30,7 +30,10 @@
 //! `allow_unstable: true`), `fill_interior` (`true`/`false`; default: fill when the cloud is
 //! surface-like, e.g. 3DGS splats, see [`super::fill`]), `splat_filter` (m, ≥ 0; default 0:
 //! the rasterizer's low-pass filter in the images a 3DGS PLY was fitted to, `√0.3 · depth /
-//! focal`, added to every splat when the filling measures the surface they render), and
+//! focal`, added to every splat when the filling measures the surface they render),
+//! `merge_splats` (`true`/`false`, default `false`: the splats of a filled 3DGS cloud that share
+//! a voxel of the filling ride one particle, see [`super::skin`]; forces then act per
+//! particle), and
 //! `boundaries:` items `{kind: ground, y, condition}`, `{kind: half_space, point, normal,
 //! condition}` (normal points into the free side), `{kind: box, min, max, condition}`
 //! (`condition` defaults to `sticky`, ground `y` to 0), and `forces:` items
@@ -268,6 +271,8 @@ pub struct SimSpec {
     pub fill_interior: Option<bool>,
     /// The rasterizer's filter (m) in the images a 3DGS input was fitted to (0: none).
     pub splat_filter: f64,
+    /// Splats that share a voxel of the filling ride one particle ([`super::skin`]).
+    pub merge_splats: bool,
     /// External forces and impulses.
     pub forces: Vec<ForceSpec>,
     positions: Positions,
@@ -352,6 +357,7 @@ impl SimSpec {
             allow_unstable: raw.allow_unstable,
             fill_interior: raw.fill_interior,
             splat_filter,
+            merge_splats: raw.merge_splats,
             forces,
             positions,
         })
@@ -481,6 +487,8 @@ struct RawSpec {
     fill_interior: Option<bool>,
     #[serde(default)]
     splat_filter: Option<f64>,
+    #[serde(default)]
+    merge_splats: bool,
     #[serde(default)]
     forces: Vec<Value>,
 }

@@ -206,7 +206,7 @@ pub struct Evaluate;
 impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
-    const VERSION: u32 = 6;
+    const VERSION: u32 = 7;
     const DESCRIPTION: &'static str = "Re-simulate the learned scene and score it in every view and frame (PSNR, SSIM, mask IoU; parameter and Chamfer errors against ground truth)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "init", "warmup", "velocity", "material"];
 
@@ -855,11 +855,14 @@ impl FrameLoss for Scorer<'_> {
         _grad: Option<&mut StateGrad>,
     ) -> Result<f64, RolloutError> {
         let fail = |message: String| RolloutError::Loss { frame, message };
-        let n = self.object.rendered();
-        let pose = Pose::<f32>::of(state, n, self.fluid);
-        let relit = self
-            .shading
-            .map(|r| r.sh(&self.gaussians.sh, self.gaussians.sh_degree, &state.f[..n]));
+        let pose = Pose::<f32>::of(state, self.object.skin(), self.fluid);
+        let relit = self.shading.map(|r| {
+            r.sh(
+                &self.gaussians.sh,
+                self.gaussians.sh_degree,
+                &self.object.gaussian_f(&state.f),
+            )
+        });
         let g = pose.apply(crate::scene::splat::render_gaussians_sh(
             self.gaussians,
             relit.as_deref().unwrap_or(&self.gaussians.sh),

@@ -251,7 +251,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 10;
+    const VERSION: u32 = 11;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 
@@ -413,10 +413,8 @@ impl TypedStage for MaterialStage {
             inputs.background,
         );
         ctx.progress.log(&format!(
-            "material: {} particles ({} Gaussians, {} fillers; {} floaters dropped), {:.2} kg, dx {:.4} m, frames 1..={last}, {} views; learning {}",
-            object.particles(),
-            object.rendered(),
-            object.particles() - object.rendered(),
+            "material: {} ({} floaters dropped), {:.2} kg, dx {:.4} m, frames 1..={last}, {} views; learning {}",
+            object.particle_summary(),
             object.floaters,
             object.mass(),
             object.body.setup.dx,
@@ -846,8 +844,9 @@ impl TypedStage for MaterialStage {
                     .map_err(StageError::failed)?;
                 let mut g = object.gaussians.clone();
                 let per = 3 * (usize::from(g.sh_degree) + 1).pow(2);
-                for (i, e) in log_e.iter().take(g.len()).enumerate() {
-                    let rgb = colour_of(*e, map[0], map[1]);
+                // Each Gaussian shows its carrier particle's E.
+                for (i, &c) in object.skin().carrier.iter().enumerate() {
+                    let rgb = colour_of(log_e[c as usize], map[0], map[1]);
                     let sh = &mut g.sh[i * per..(i + 1) * per];
                     sh.fill(0.0);
                     for c in 0..3 {
@@ -909,7 +908,7 @@ impl TypedStage for MaterialStage {
         };
         crate::io::write_json(&ctx.out_dir.join("material.json"), &out)
             .map_err(StageError::failed)?;
-        let sim = sim_yaml(
+        let mut sim = sim_yaml(
             &spec,
             velocity.initial_velocity,
             ctx.scene,
@@ -917,6 +916,12 @@ impl TypedStage for MaterialStage {
             object.body.setup.dx,
             None,
         );
+        // The splats' solid as the stage measured it (the rasterizer's filter in the warm-up's
+        // images), so `pipe simulate` builds the same particles.
+        sim.push_str(&format!(
+            "splat_filter: {}\n",
+            crate::simulate::spec::fmt_num(inputs.splat_filter())
+        ));
         std::fs::write(
             ctx.out_dir.join("scene.sim.yaml"),
             format!(

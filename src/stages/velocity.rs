@@ -240,7 +240,7 @@ impl VelocityResult {
 impl TypedStage for Velocity {
     type Params = VelocityParams;
     const KIND: &'static str = "velocity";
-    const VERSION: u32 = 8;
+    const VERSION: u32 = 9;
     const DESCRIPTION: &'static str = "Learn the initial velocity from the first frames (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup"];
 
@@ -382,10 +382,8 @@ impl TypedStage for Velocity {
             && in_free_flight
             && free_flight::touches_nothing(&object, &start_motion, last);
         ctx.progress.log(&format!(
-            "velocity: {} particles ({} Gaussians, {} fillers; {} floaters dropped), {:.2} kg, frames 1..={last}, {} views{}",
-            object.particles(),
-            object.rendered(),
-            object.particles() - object.rendered(),
+            "velocity: {} ({} floaters dropped), {:.2} kg, frames 1..={last}, {} views{}",
+            object.particle_summary(),
             object.floaters,
             object.mass(),
             targets.len(),

@@ -24,6 +24,12 @@ use crate::support::hash;
 
 /// A 4×4×4 block of Gaussians 2 cm apart, SH degree 1.
 fn block() -> Gaussians {
+    block_of(false)
+}
+
+/// [`block`], or with `pairs` 32 sites 2 cm apart holding two Gaussians 2 mm apart each, so
+/// that Gaussians share voxels of the filling and ride one particle.
+fn block_of(pairs: bool) -> Gaussians {
     let n = 64;
     let mut g = Gaussians {
         sh_degree: 1,
@@ -32,10 +38,15 @@ fn block() -> Gaussians {
     for i in 0..n {
         let (a, b, c) = (i / 16, (i / 4) % 4, i % 4);
         g.id.push(i as u32);
+        let (c, d) = if pairs {
+            (c / 2, (i % 2) as f32 * 0.001)
+        } else {
+            (c, 0.0)
+        };
         g.position.push([
-            -0.03 + 0.02 * a as f32,
-            0.06 + 0.02 * b as f32,
-            -0.03 + 0.02 * c as f32,
+            -0.03 + 0.02 * a as f32 + 1.5 * d,
+            0.06 + 0.02 * b as f32 + d,
+            -0.03 + 0.02 * c as f32 - d,
         ]);
         g.log_scale.push([
             (0.011 * (1.0 + 0.3 * hash(i, 0))).ln() as f32,
@@ -111,7 +122,7 @@ impl FrameLoss for LinearLoss<'_> {
         state: &State,
         grad: Option<&mut StateGrad>,
     ) -> Result<f64, RolloutError> {
-        let pose = Pose::<f64>::of(state, self.object.rendered(), false);
+        let pose = Pose::<f64>::of(state, self.object.skin(), false);
         let base = pipe_render::Gaussians {
             means: &self.means,
             scales: pipe_render::Scales::Log(&self.log_scales),
@@ -145,13 +156,17 @@ impl FrameLoss for LinearLoss<'_> {
             + out.alpha.iter().zip(&a).map(|(x, a)| x * a).sum::<f64>();
         if let Some(grad) = grad {
             let gr = pipe_render::backward(&g, &self.cam, &opts, &out, &w, Some(&a)).unwrap();
-            pose.seed(&gr, grad);
+            pose.seed(self.object.skin(), &gr, grad);
         }
         Ok(loss)
     }
 }
 
 fn object() -> Object {
+    object_of(&block())
+}
+
+fn object_of(gaussians: &Gaussians) -> Object {
     let scene = scene();
     let material = MaterialValues::guess(
         MaterialFamily::Elastic,
@@ -159,7 +174,7 @@ fn object() -> Object {
         &BTreeMap::from([(Param::E, 5e3), (Param::Nu, 0.3)]),
     );
     let mut o = Object::build(
-        &block(),
+        gaussians,
         &ObjectSettings {
             scene: &scene,
             frame_dt: 0.01,
@@ -230,6 +245,26 @@ fn rollout_loss(object: &Object, values: &MaterialValues, v0: &[DVec3], frames: 
 fn material_and_velocity_gradients_match_finite_differences_through_render_and_mpm() {
     let object = object();
     assert!(object.particles() >= 64, "{}", object.particles());
+    check_material_and_velocity_gradients(&object);
+}
+
+/// As above, with Gaussians that share voxels riding one particle (`simulate::skin`): the
+/// gradients reach the carriers through `x_g = x_c + F_c d_g`.
+#[test]
+fn gradients_through_gaussians_that_ride_one_particle_match_finite_differences() {
+    let object = object_of(&block_of(true));
+    assert_eq!(object.rendered(), 64);
+    assert!(
+        object.carriers() < 48 && !object.skin().is_identity(),
+        "{} carriers",
+        object.carriers()
+    );
+    assert!(object.skin().offset.iter().any(|d| d.length() > 1e-3));
+    check_material_and_velocity_gradients(&object);
+}
+
+fn check_material_and_velocity_gradients(object: &Object) {
+    let object = object.clone();
     let values = MaterialValues::guess(
         MaterialFamily::Elastic,
         1000.0,
@@ -689,6 +724,71 @@ fn the_demo_at_draft_learns_velocity_and_e_from_ten_times_too_stiff() {
             "{f}"
         );
     }
+    // One shared path: `pipe simulate` of the warm-up's Gaussians with the learned
+    // `scene.sim.yaml`, as its header says, builds the stage's particles (the Gaussians of a
+    // voxel riding one particle).
+    let pipe = |args: &[&std::ffi::OsStr]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_pipe"))
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
+    let (ply, sim) = (dir.path().join("object.ply"), dir.path().join("sim"));
+    let os = |s: &str| std::ffi::OsString::from(s);
+    pipe(&[
+        os("export").as_os_str(),
+        file.as_os_str(),
+        os("--workdir").as_os_str(),
+        dir.path().as_os_str(),
+        os("--stage").as_os_str(),
+        os("warmup").as_os_str(),
+        os("--format").as_os_str(),
+        os("ply").as_os_str(),
+        os("--out").as_os_str(),
+        ply.as_os_str(),
+    ]);
+    let yaml = entry(dir.path(), &file, "material").join("scene.sim.yaml");
+    pipe(&[
+        os("simulate").as_os_str(),
+        ply.as_os_str(),
+        os("--material").as_os_str(),
+        yaml.as_os_str(),
+        os("--frames").as_os_str(),
+        os("2").as_os_str(),
+        os("--out").as_os_str(),
+        sim.as_os_str(),
+        os("--splats").as_os_str(),
+    ]);
+    let s: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(sim.join("summary.json")).unwrap()).unwrap();
+    let (carriers, fill) = (
+        s["carrier_particles"].as_u64().unwrap(),
+        s["fill_particles"].as_u64().unwrap(),
+    );
+    assert_eq!(carriers + fill, m["particles"].as_u64().unwrap(), "{s}");
+    assert!(carriers < s["particles_out"].as_u64().unwrap(), "{s}");
+    // Every Gaussian is written, carried by its particle: moved by the fall, none left behind.
+    let g0 = pipe::io::ply::read_gaussians(&ply).unwrap();
+    let g1 = pipe::io::ply::read_gaussians(&sim.join("splats_0001.ply")).unwrap();
+    assert_eq!(g1.len(), g0.len());
+    let shift: Vec<f32> = g0
+        .position
+        .iter()
+        .zip(&g1.position)
+        .map(|(a, b)| (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f32>().sqrt())
+        .collect();
+    assert!(
+        shift
+            .iter()
+            .all(|d| d.is_finite() && *d > 0.005 && *d < 0.03),
+        "{:?}",
+        &shift[..8]
+    );
 }
 
 /// `material: {model: field}` on the demo (shortened; the field stepped after every frame,
@@ -750,7 +850,7 @@ fn a_material_field_is_learned_from_the_global_fit_and_written() {
         );
     }
     let g = pipe::io::ply::read_gaussians(&out.join("field_E.ply")).unwrap();
-    assert_eq!(g.len(), parts.rendered.iter().filter(|r| **r).count());
+    assert_eq!(g.len() as u64, m["gaussians"].as_u64().unwrap());
 }
 
 /// `kill -9` of `pipe run` during `material`: the next run resumes from the last checkpoint,

@@ -57,7 +57,7 @@ use crate::scene::camera::Camera;
 use crate::scene::deform::deform;
 use crate::scene::frames::{FrameRow, Frames, Role};
 use crate::scene::gaussians::{Gaussians, sh_coeffs};
-use crate::simulate::{FrameStats, SimulateError, Stepped, splat_deformation};
+use crate::simulate::{FrameStats, SimulateError, Stepped};
 use crate::stages::material::{MaterialModel, MaterialResult};
 use crate::stages::velocity::VelocityResult;
 
@@ -178,8 +178,10 @@ pub struct Applied {
     /// Grid cell (m) and cells across the object.
     pub grid_dx_m: f64,
     pub cells: f64,
-    /// Simulated Gaussians, fillers (simulated, not rendered), Gaussians held in place, and
-    /// floaters dropped.
+    /// Simulated particles (those carrying the Gaussians and the fillers), simulated
+    /// Gaussians, fillers (simulated, not rendered), Gaussians held in place, and floaters
+    /// dropped.
+    pub particles: usize,
     pub gaussians: usize,
     pub fillers: usize,
     pub fixed_gaussians: usize,
@@ -245,7 +247,7 @@ pub struct Edit;
 impl TypedStage for Edit {
     type Params = EditParams;
     const KIND: &'static str = "edit";
-    const VERSION: u32 = 5;
+    const VERSION: u32 = 6;
     const DESCRIPTION: &'static str = "Simulate new motion of the learned scene (forces, impulses, material, gravity and boundary changes) and render it as PNG frames, GIFs, MP4s and per-frame 3DGS PLYs";
     const UPSTREAM: &'static [&'static str] = &[
         "ingest", "init", "warmup", "velocity", "material", "evaluate",
@@ -292,12 +294,12 @@ impl TypedStage for Edit {
 fn summary(r: &EditReport) -> String {
     let a = &r.applied;
     format!(
-        "edit: {} frames, {} particles ({} Gaussians, {} fillers), {:.2} kg; height {:.4} m at \
-         frame 0, lowest {:.4} m (frame {}); {:.1} s",
+        "edit: {} frames, {} particles ({} fillers) carrying {} Gaussians, {:.2} kg; height \
+         {:.4} m at frame 0, lowest {:.4} m (frame {}); {:.1} s",
         a.frames,
-        a.gaussians + a.fillers,
-        a.gaussians,
+        a.particles,
         a.fillers,
+        a.gaussians,
         a.mass_kg,
         r.height_frame0_m,
         r.min_height_m,
@@ -729,7 +731,7 @@ pub fn run(
         Targets {
             x: &object.body.state.x,
             mass: &object.body.material.mass,
-            gaussians: n_g,
+            gaussians: object.carriers(),
             fixed: &fixed_x,
         },
     )
@@ -853,11 +855,9 @@ pub fn run(
         mkdir(&out.join("splats"))?;
     }
     progress.log(&format!(
-        "edit: {} particles ({} Gaussians, {} fillers, {} held in place), {:.2} kg, dx {:.4} m, \
+        "edit: {} ({} Gaussians held in place), {:.2} kg, dx {:.4} m, \
          {} interaction(s), {} frames of {:.4} s, {} camera(s)",
-        object.particles(),
-        n_g,
-        object.particles() - n_g,
+        object.particle_summary(),
         fixed.len(),
         object.mass(),
         object.body.setup.dx,
@@ -941,8 +941,9 @@ pub fn run(
         let moved = match frame {
             0 => object.gaussians.clone(),
             _ => {
-                let f = splat_deformation(family, &state.f[..n_g]);
-                let mut g = deform(&object.gaussians, &state.x[..n_g], &f);
+                let pose = object.body.input_pose(family, state);
+                let (x, f) = (pose.x, pose.f);
+                let mut g = deform(&object.gaussians, &x, &f);
                 if let Some(r) = &relight {
                     g.sh = r.sh(&g.sh, g.sh_degree, &f);
                 }
@@ -1101,8 +1102,9 @@ pub fn run(
             frame_dt_s: frame_dt,
             grid_dx_m: dx,
             cells,
+            particles: object.particles(),
             gaussians: n_g,
-            fillers: object.particles() - n_g,
+            fillers: object.particles() - object.carriers(),
             fixed_gaussians: fixed.len(),
             floaters: object.floaters,
             mass_kg: object.mass(),
