@@ -700,6 +700,94 @@ fn splats_follow_the_particles() {
     assert!(!out.join("splats_0000.ply").exists() && !out.join("splats_0002.ply").exists());
 }
 
+/// `merge_splats: true`: the splats that share a voxel of the filling ride one particle. The
+/// ball keeps its mass and falls as with one particle per splat, every splat is still written,
+/// and forces named by splat index act on those splats' carriers (an index past the input's
+/// splats is named against their count, not the carriers').
+#[test]
+fn merged_splats_ride_fewer_particles_and_fall_the_same() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (ply, n) = splat_ball(tmp.path(), 0.1, DVec3::new(0.0, 0.3, 0.0));
+    let yaml = "material: {family: elastic, youngs_modulus: 2.0e4, poisson_ratio: 0.3, density: 1000}\n\
+                frame_dt: 0.041666666666666664\n";
+    let each = simulate::run(
+        &ply,
+        &write_sim(tmp.path(), yaml),
+        3,
+        &tmp.path().join("each"),
+        &quiet(),
+    )
+    .unwrap();
+    let merged_yaml = format!("{yaml}merge_splats: true\n");
+    let merged = simulate::run(
+        &ply,
+        &write_sim(tmp.path(), &merged_yaml),
+        3,
+        &tmp.path().join("merged"),
+        &quiet(),
+    )
+    .unwrap();
+    println!(
+        "{n} splats: {} carriers, {} fillers (one each: {} fillers)",
+        merged.carrier_particles, merged.fill_particles, each.fill_particles
+    );
+    assert_eq!(each.carrier_particles, n);
+    assert!(merged.carrier_particles < n, "{}", merged.carrier_particles);
+    assert_eq!((merged.particles_in, merged.particles_out), (n, n));
+    assert!((merged.total_mass_kg / each.total_mass_kg - 1.0).abs() < 1e-9);
+    let (a, b) = (
+        read(&tmp.path().join("each/frame_0002.ply")),
+        read(&tmp.path().join("merged/frame_0002.ply")),
+    );
+    assert_eq!(b.len(), n);
+    let (ca, cb) = (centroid(&a), centroid(&b));
+    assert!((ca - cb).length() < 1e-3, "{ca} vs {cb}");
+    let worst = a
+        .iter()
+        .zip(&b)
+        .map(|(p, q)| (*p - *q).length())
+        .fold(0.0, f64::max);
+    assert!(
+        worst < 3e-3,
+        "a splat {worst} m from where one particle per splat puts it"
+    );
+
+    // Forces by splat index act on their carriers; an index past the splats is named.
+    let pushed = format!(
+        "{merged_yaml}gravity: [0, 0, 0]\nforces:\n  - {{kind: impulse, particles: [0, 1, 2, 3], impulse: [1.0e-3, 0, 0], time: 0.0}}\n"
+    );
+    let s = simulate::run(
+        &ply,
+        &write_sim(tmp.path(), &pushed),
+        2,
+        &tmp.path().join("p"),
+        &quiet(),
+    )
+    .unwrap();
+    assert_eq!(s.forces, 1);
+    let x1 = read(&tmp.path().join("p/frame_0001.ply"));
+    let x0 = read(&ply);
+    assert!(
+        x1[0].x - x0[0].x > 1e-4,
+        "the pushed splat moves: {} -> {}",
+        x0[0].x,
+        x1[0].x
+    );
+    let bad = format!(
+        "{merged_yaml}forces:\n  - {{kind: impulse, particles: [{n}], impulse: [1.0e-3, 0, 0], time: 0.0}}\n"
+    );
+    let e = simulate::run(
+        &ply,
+        &write_sim(tmp.path(), &bad),
+        2,
+        &tmp.path().join("q"),
+        &quiet(),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains(&format!("the input has {n} particles")), "{e}");
+}
+
 /// A stiff ring (R = 0.15 m, r = 0.04 m) standing almost upright 2 cm above a sticky ground:
 /// it lands, tips over sideways and rolls away from where it fell, motion that starts only
 /// after contact. Without `domain:` the grid follows it, so its frames equal those of a run
