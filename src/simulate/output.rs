@@ -354,15 +354,17 @@ impl Summary {
             )
         };
         let mut text = format!(
-            "simulated {} frame(s) of {} particles{} ({}) in {:.1} s: {steps}; dx {} m, particle \
+            "simulated {} frame(s) of {} ({}) in {:.1} s: {steps}; dx {} m, particle \
              volume {} m^3, {}\nwrote {} frame PLYs{}, \
              particles.arrow and summary.json to {}",
             self.frames.saturating_sub(1),
-            self.particles_out,
             if self.carrier_particles == self.particles_out {
-                String::new()
+                format!("{} particles", self.particles_out)
             } else {
-                format!(" (riding {} merged particles)", self.carrier_particles)
+                format!(
+                    "{} splats riding {} particles",
+                    self.particles_out, self.carrier_particles
+                )
             },
             super::spec::family_name(self.material.family),
             self.wall_time_s,
