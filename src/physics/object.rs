@@ -53,7 +53,7 @@ pub struct ObjectSettings<'a> {
 /// The simulated object.
 #[derive(Debug, Clone)]
 pub struct Object {
-    /// The simulated Gaussians, canonical: Gaussian `g` rides particle `body.skin.carrier[g]`.
+    /// The simulated Gaussians, canonical: Gaussian `g` rides particle `body.skin.carrier()[g]`.
     pub gaussians: Gaussians,
     /// Gaussians dropped as floaters.
     pub floaters: usize,
@@ -98,12 +98,7 @@ impl Object {
 
     /// Each Gaussian's deformation gradient: its carrier's `F` in `f` (one per particle).
     pub fn gaussian_f<'a>(&self, f: &'a [DMat3]) -> std::borrow::Cow<'a, [DMat3]> {
-        let n = self.carriers();
-        if self.body.skin.is_identity() {
-            std::borrow::Cow::Borrowed(&f[..n])
-        } else {
-            std::borrow::Cow::Owned(self.body.skin.gather(&f[..n]))
-        }
+        self.body.skin.gather(f)
     }
 
     /// The re-lighting of the Gaussians when the body deforms ([`crate::scene::shading`]):
@@ -165,7 +160,15 @@ impl Object {
                 .map(|sp| sp.filtered(s.splat_filter))
             })
             .collect();
-        let text = sim_yaml(&s.material, [0.0; 3], s.scene, s.frame_dt, dx, Some(true));
+        let text = sim_yaml(
+            &s.material,
+            [0.0; 3],
+            s.scene,
+            s.frame_dt,
+            dx,
+            Some(true),
+            s.splat_filter,
+        );
         let mut spec = SimSpec::parse(&s.label, &text)?;
         if let Some(still) = &s.anchor {
             spec.boundaries
@@ -287,6 +290,7 @@ pub fn sim_yaml(
     frame_dt: f64,
     grid_dx: f64,
     fill_interior: Option<bool>,
+    splat_filter: f64,
 ) -> String {
     let num = |v: f64| fmt_num(v);
     let vec3 = |v: [f64; 3]| format!("[{}, {}, {}]", num(v[0]), num(v[1]), num(v[2]));
@@ -313,7 +317,10 @@ pub fn sim_yaml(
     if let Some(f) = fill_interior {
         let _ = writeln!(t, "fill_interior: {f}");
     }
-    // The splats that share a voxel of the filling ride one particle (`simulate::skin`).
+    // The splats' solid as the stages measure it (the rasterizer's filter in the warm-up's
+    // images), and the splats that share a voxel of the filling riding one particle
+    // (`simulate::skin`): `pipe simulate` then builds the stages' particles.
+    let _ = writeln!(t, "splat_filter: {}", num(splat_filter));
     let _ = writeln!(t, "merge_splats: true");
     if scene.boundaries.is_empty() {
         let _ = writeln!(t, "boundaries: []");

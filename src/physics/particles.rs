@@ -144,7 +144,7 @@ pub fn write(
     let n = object.particles();
     let r = object.carriers();
     let mut first = vec![None; r];
-    for (g, &c) in object.skin().carrier.iter().enumerate().rev() {
+    for (g, &c) in object.skin().carrier().iter().enumerate().rev() {
         first[c as usize] = Some(object.gaussians.id[g]);
     }
     let fluid = matches!(

@@ -29,21 +29,16 @@ fn from_rows<T: Real>(r: &[T; 9]) -> DMat3 {
 
 /// The Gaussians' centres: each carrier's position plus its neighbourhood's map `a(c, d_g)`
 /// of the Gaussian's rest offset (the carriers' positions as they are for the identity skin).
-fn means_of<T: Real>(
-    state: &State,
-    skin: &Skin,
-    identity: bool,
-    a: impl Fn(usize, DVec3) -> DVec3,
-) -> Vec<[T; 3]> {
-    if identity {
+fn means_of<T: Real>(state: &State, skin: &Skin, a: impl Fn(usize, DVec3) -> DVec3) -> Vec<[T; 3]> {
+    if skin.is_identity() {
         return state.x[..skin.len()]
             .iter()
             .map(|x| x.to_array().map(T::from_f64))
             .collect();
     }
-    skin.carrier
+    skin.carrier()
         .iter()
-        .zip(&skin.offset)
+        .zip(skin.offset())
         .map(|(&c, d)| {
             let c = c as usize;
             (state.x[c] + a(c, *d)).to_array().map(T::from_f64)
@@ -71,13 +66,12 @@ impl<T: Real> Pose<T> {
     /// The Gaussians of `skin` on the particles of `state`; `fluid` for a Newtonian fluid.
     pub fn of(state: &State, skin: &Skin, fluid: bool) -> Self {
         let n = skin.particles();
-        let identity = skin.is_identity();
         if fluid {
             let j: Vec<f64> = state.f[..n].iter().map(|f| f.x_axis.x).collect();
             let scale: Vec<f64> = j.iter().map(|&j| j.max(0.0).cbrt()).collect();
-            let means = means_of(state, skin, identity, |c, d| d * scale[c]);
+            let means = means_of(state, skin, |c, d| d * scale[c]);
             let f = skin
-                .carrier
+                .carrier()
                 .iter()
                 .map(|&c| rows(&DMat3::from_diagonal(DVec3::splat(scale[c as usize]))))
                 .collect();
@@ -94,13 +88,9 @@ impl<T: Real> Pose<T> {
             .with_min_len(1024)
             .map(|f| (*f, polar_rotation(f)))
             .collect();
-        let means = means_of(state, skin, identity, |c, d| f_r[c].0 * d);
-        let (f, r): (Vec<_>, Vec<_>) = if identity {
-            f_r.iter().map(|(f, r)| (rows(f), rows(r))).unzip()
-        } else {
-            let per: Vec<([T; 9], [T; 9])> = f_r.iter().map(|(f, r)| (rows(f), rows(r))).collect();
-            skin.carrier.iter().map(|&c| per[c as usize]).unzip()
-        };
+        let means = means_of(state, skin, |c, d| f_r[c].0 * d);
+        let per: Vec<([T; 9], [T; 9])> = f_r.iter().map(|(f, r)| (rows(f), rows(r))).collect();
+        let (f, r): (Vec<_>, Vec<_>) = skin.gather(&per).iter().copied().unzip();
         Self {
             means,
             f,
@@ -144,13 +134,13 @@ impl<T: Real> Pose<T> {
         debug_assert_eq!(skin.len(), self.len());
         let n = skin.particles();
         let gm = |g: usize| DVec3::from_array(grads.means[g].map(T::to_f64));
-        for (g, &c) in skin.carrier.iter().enumerate() {
+        for (g, &c) in skin.carrier().iter().enumerate() {
             out.x[c as usize] += gm(g);
         }
         if !self.j.is_empty() {
             // A = J^{1/3} I: ∂L/∂J = (tr(∂L/∂A) + ∂L/∂x_g · d_g) · J^{-2/3} / 3.
             let mut gj = vec![0.0; n];
-            for (g, (&c, d)) in skin.carrier.iter().zip(&skin.offset).enumerate() {
+            for (g, (&c, d)) in skin.carrier().iter().zip(skin.offset()).enumerate() {
                 let a = &grads.deformation[g];
                 gj[c as usize] += (a[0] + a[4] + a[8]).to_f64() + gm(g).dot(*d);
             }
@@ -163,7 +153,7 @@ impl<T: Real> Pose<T> {
         // Per carrier: ∂L/∂F from the covariances and the offsets (∂L/∂x_g d_gᵀ), ∂L/∂R.
         let mut gf = vec![DMat3::ZERO; n];
         let mut gr: Vec<Option<DMat3>> = vec![None; n];
-        for (g, (&c, d)) in skin.carrier.iter().zip(&skin.offset).enumerate() {
+        for (g, (&c, d)) in skin.carrier().iter().zip(skin.offset()).enumerate() {
             let c = c as usize;
             gf[c] += from_rows(&grads.deformation[g]);
             if *d != DVec3::ZERO {

@@ -437,17 +437,18 @@ impl Body {
     ) -> InputPose<'s> {
         let n = self.n_input;
         let a = splat_deformation(family, &state.f[..n]);
+        let v = self.skin.gather(&state.v);
         if self.skin.is_identity() {
             return InputPose {
                 x: Cow::Borrowed(&state.x[..n]),
-                v: Cow::Borrowed(&state.v[..n]),
+                v,
                 f: a,
             };
         }
         InputPose {
             x: Cow::Owned(self.skin.positions(&state.x[..n], &a)),
-            v: Cow::Owned(self.skin.gather(&state.v[..n])),
-            f: Cow::Owned(self.skin.gather(&a)),
+            v,
+            f: Cow::Owned(self.skin.gather(&a).into_owned()),
         }
     }
 

@@ -606,7 +606,6 @@ fn resolve_force(
     inputs: usize,
     merged: Option<&super::skin::Merged>,
 ) -> Result<ParticleForce, SimulateError> {
-    let n = inputs;
     let path = format!("forces[{i}].particles");
     let set = match f {
         ForceSpec::Force { particles, .. } | ForceSpec::Impulse { particles, .. } => particles,
@@ -614,13 +613,13 @@ fn resolve_force(
     let particles: Vec<usize> = match set {
         ParticleSet::All => (0..x0.len()).collect(),
         ParticleSet::Indices(ids) => {
-            if let Some((j, &bad)) = ids.iter().enumerate().find(|(_, p)| **p >= n as u64) {
+            if let Some((j, &bad)) = ids.iter().enumerate().find(|(_, p)| **p >= inputs as u64) {
                 return Err(spec.error_at(
                     &format!("{path}[{j}]"),
                     format!("invalid `{path}[{j}]` = {bad}"),
                     Some(format!(
-                        "the input has {n} particles (indices 0 to {})",
-                        n - 1
+                        "the input has {inputs} particles (indices 0 to {})",
+                        inputs - 1
                     )),
                 ));
             }
@@ -629,7 +628,7 @@ fn resolve_force(
                 Some(m) => {
                     let mut c: Vec<usize> = ids
                         .iter()
-                        .map(|&p| m.skin.carrier[p as usize] as usize)
+                        .map(|&p| m.skin.carrier()[p as usize] as usize)
                         .collect();
                     c.sort_unstable();
                     c.dedup();

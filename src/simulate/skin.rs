@@ -13,6 +13,8 @@
 //! holds only its volume ratio), its covariance deformed by `F_c` as before. The carrier sits
 //! at the volume-weighted centroid of its Gaussians and stands for their summed volume.
 
+use std::borrow::Cow;
+
 use glam::{DMat3, DVec3};
 
 use super::fill::NO_VOXEL;
@@ -21,9 +23,13 @@ use super::fill::NO_VOXEL;
 #[derive(Debug, Clone, PartialEq)]
 pub struct Skin {
     /// Particle index of each Gaussian.
-    pub carrier: Vec<u32>,
+    carrier: Vec<u32>,
     /// Rest offset of each Gaussian from its particle (m).
-    pub offset: Vec<DVec3>,
+    offset: Vec<DVec3>,
+    /// Particles that carry Gaussians (the highest carrier index plus one).
+    particles: usize,
+    /// Whether Gaussian `g` is particle `g`, at no offset, for every `g`.
+    identity: bool,
 }
 
 /// The particles of merged inputs.
@@ -38,12 +44,33 @@ pub struct Merged {
 }
 
 impl Skin {
+    /// Gaussian `g` rides particle `carrier[g]` at the rest offset `offset[g]` (m).
+    pub fn new(carrier: Vec<u32>, offset: Vec<DVec3>) -> Self {
+        assert_eq!(carrier.len(), offset.len(), "one offset per Gaussian");
+        let particles = carrier.iter().max().map_or(0, |&c| c as usize + 1);
+        let identity = carrier.iter().enumerate().all(|(g, c)| *c as usize == g)
+            && offset.iter().all(|d| *d == DVec3::ZERO);
+        Self {
+            carrier,
+            offset,
+            particles,
+            identity,
+        }
+    }
+
     /// Every Gaussian its own particle (`carrier[g] = g`, no offset).
     pub fn identity(n: usize) -> Self {
-        Self {
-            carrier: (0..n as u32).collect(),
-            offset: vec![DVec3::ZERO; n],
-        }
+        Self::new((0..n as u32).collect(), vec![DVec3::ZERO; n])
+    }
+
+    /// Particle index of each Gaussian.
+    pub fn carrier(&self) -> &[u32] {
+        &self.carrier
+    }
+
+    /// Rest offset of each Gaussian from its particle (m).
+    pub fn offset(&self) -> &[DVec3] {
+        &self.offset
     }
 
     /// Gaussians carried.
@@ -58,24 +85,26 @@ impl Skin {
 
     /// Particles that carry Gaussians (the highest carrier index plus one).
     pub fn particles(&self) -> usize {
-        self.carrier.iter().max().map_or(0, |&c| c as usize + 1)
+        self.particles
     }
 
-    /// Whether Gaussian `g` is particle `g` for every `g`.
+    /// Whether Gaussian `g` is particle `g`, at no offset, for every `g`.
     pub fn is_identity(&self) -> bool {
-        self.carrier
-            .iter()
-            .enumerate()
-            .all(|(g, c)| *c as usize == g)
-            && self.offset.iter().all(|d| *d == DVec3::ZERO)
+        self.identity
     }
 
-    /// One value per Gaussian: its carrier's.
-    pub fn gather<T: Copy>(&self, per_particle: &[T]) -> Vec<T> {
-        self.carrier
-            .iter()
-            .map(|&c| per_particle[c as usize])
-            .collect()
+    /// One value per Gaussian: its carrier's (the first particles' own, borrowed, for the
+    /// identity skin).
+    pub fn gather<'a, T: Clone>(&self, per_particle: &'a [T]) -> Cow<'a, [T]> {
+        if self.identity {
+            return Cow::Borrowed(&per_particle[..self.len()]);
+        }
+        Cow::Owned(
+            self.carrier
+                .iter()
+                .map(|&c| per_particle[c as usize].clone())
+                .collect(),
+        )
     }
 
     /// The Gaussians' centres (m) for particles at `x` whose neighbourhoods map by `a`
@@ -133,7 +162,7 @@ pub fn merge(x: &[DVec3], voxel: &[usize], volume: &[f64]) -> Merged {
     Merged {
         volumes: sums.iter().map(|s| s.1).collect(),
         particles,
-        skin: Skin { carrier, offset },
+        skin: Skin::new(carrier, offset),
     }
 }
 
@@ -151,7 +180,8 @@ mod tests {
             DVec3::new(9.0, 9.0, 9.0),
         ];
         let m = merge(&x, &[7, 7, NO_VOXEL, 7, 3], &[1.0, 1.0, 0.5, 2.0, 1.0]);
-        assert_eq!(m.skin.carrier, vec![0, 0, 1, 0, 2]);
+        assert_eq!(m.skin.carrier(), &[0, 0, 1, 0, 2]);
+        assert_eq!(m.skin.particles(), 3);
         assert_eq!(m.volumes, vec![4.0, 0.5, 1.0]);
         // (0 + 1 + 2·(0, 2, 0)) / 4.
         assert_eq!(m.particles[0], DVec3::new(0.25, 1.0, 0.0));

@@ -845,7 +845,7 @@ impl TypedStage for MaterialStage {
                 let mut g = object.gaussians.clone();
                 let per = 3 * (usize::from(g.sh_degree) + 1).pow(2);
                 // Each Gaussian shows its carrier particle's E.
-                for (i, &c) in object.skin().carrier.iter().enumerate() {
+                for (i, &c) in object.skin().carrier().iter().enumerate() {
                     let rgb = colour_of(log_e[c as usize], map[0], map[1]);
                     let sh = &mut g.sh[i * per..(i + 1) * per];
                     sh.fill(0.0);
@@ -908,20 +908,15 @@ impl TypedStage for MaterialStage {
         };
         crate::io::write_json(&ctx.out_dir.join("material.json"), &out)
             .map_err(StageError::failed)?;
-        let mut sim = sim_yaml(
+        let sim = sim_yaml(
             &spec,
             velocity.initial_velocity,
             ctx.scene,
             inputs.frame_dt,
             object.body.setup.dx,
             None,
+            inputs.splat_filter(),
         );
-        // The splats' solid as the stage measured it (the rasterizer's filter in the warm-up's
-        // images), so `pipe simulate` builds the same particles.
-        sim.push_str(&format!(
-            "splat_filter: {}\n",
-            crate::simulate::spec::fmt_num(inputs.splat_filter())
-        ));
         std::fs::write(
             ctx.out_dir.join("scene.sim.yaml"),
             format!(

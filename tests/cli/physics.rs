@@ -259,7 +259,7 @@ fn gradients_through_gaussians_that_ride_one_particle_match_finite_differences()
         "{} carriers",
         object.carriers()
     );
-    assert!(object.skin().offset.iter().any(|d| d.length() > 1e-3));
+    assert!(object.skin().offset().iter().any(|d| d.length() > 1e-3));
     check_material_and_velocity_gradients(&object);
 }
 
