@@ -17,7 +17,8 @@
 //!   Each solid voxel's volume `h³` goes to the splats whose centres lie in it, or lie just
 //!   outside the solid next to it (shared evenly), or else to one filler particle at its
 //!   centre; a splat more than a voxel outside the solid (a faint one) carries
-//!   [`STRAY_VOLUME`] of a voxel.
+//!   [`STRAY_VOLUME`] of a voxel when it is its own particle (with `merge_splats` it rides
+//!   the nearest particle at no volume instead, [`crate::simulate::skin::merge`]).
 //! - Points only (a sampled surface): the wall is every voxel holding a point, and those under
 //!   the corners of a cube of `h/2` about it (so that a lattice of spacing `h` leaves no gap).
 //!   Fillers go into the enclosed voxels; the points share their wall's volume evenly, the

@@ -118,42 +118,55 @@ impl Skin {
     }
 }
 
-/// Merges the inputs `x` (m) that share a voxel (`voxel`, from the filling; [`NO_VOXEL`]
-/// inputs stay alone) into one particle each, at their volume-weighted centroid.
+/// Merges the inputs `x` (m) that share a voxel (`voxel`, from the filling) into one particle
+/// each, at their volume-weighted centroid. An input outside the solid ([`NO_VOXEL`]: a faint
+/// splat the opacity field does not hold) is appearance, not matter: it rides the particle
+/// nearest to it at no volume, so that it can neither weigh on the body nor hang under it as
+/// a keel (a thin plate fitted from cameras above it gathered faint splats up to 10 cm under
+/// it, and its simulated double tipped over where the capture lay flat). Only when no input
+/// shares a voxel does each stay its own particle, at its own volume.
 pub fn merge(x: &[DVec3], voxel: &[usize], volume: &[f64]) -> Merged {
     assert_eq!(x.len(), voxel.len(), "one voxel per input");
     assert_eq!(x.len(), volume.len(), "one volume per input");
     let mut group_of = std::collections::HashMap::new();
-    let mut carrier = Vec::with_capacity(x.len());
+    let mut carrier = vec![u32::MAX; x.len()];
     let mut sums: Vec<(DVec3, f64, DVec3, usize)> = Vec::new();
+    let strays_alone = voxel.iter().all(|&v| v == NO_VOXEL);
     for (i, (&p, &v)) in x.iter().zip(volume).enumerate() {
-        let key = if voxel[i] == NO_VOXEL {
-            None
-        } else {
-            Some(voxel[i])
-        };
-        let g = match key.and_then(|k| group_of.get(&k).copied()) {
-            Some(g) => g,
-            None => {
-                let g = sums.len();
-                sums.push((DVec3::ZERO, 0.0, DVec3::ZERO, 0));
-                if let Some(k) = key {
-                    group_of.insert(k, g);
-                }
-                g
+        let g = if voxel[i] == NO_VOXEL {
+            if !strays_alone {
+                continue;
             }
+            sums.push((DVec3::ZERO, 0.0, DVec3::ZERO, 0));
+            sums.len() - 1
+        } else {
+            *group_of.entry(voxel[i]).or_insert_with(|| {
+                sums.push((DVec3::ZERO, 0.0, DVec3::ZERO, 0));
+                sums.len() - 1
+            })
         };
         let s = &mut sums[g];
         s.0 += p * v;
         s.1 += v;
         s.2 += p;
         s.3 += 1;
-        carrier.push(g as u32);
+        carrier[i] = g as u32;
     }
     let particles: Vec<DVec3> = sums
         .iter()
         .map(|&(px, v, p, n)| if v > 0.0 { px / v } else { p / n as f64 })
         .collect();
+    if carrier.contains(&u32::MAX) {
+        // Strays ride the nearest particle (ties: the lowest index).
+        let (lo, hi) = crate::scene::neighbors::bounds(&particles).expect("a voxel group");
+        let h = ((hi - lo).max_element() / 32.0).max(1e-6);
+        let grid = crate::scene::neighbors::PointGrid::new(&particles, h);
+        for (i, c) in carrier.iter_mut().enumerate() {
+            if *c == u32::MAX {
+                *c = grid.nearest(x[i], None).expect("a particle").0 as u32;
+            }
+        }
+    }
     let offset = x
         .iter()
         .zip(&carrier)
@@ -180,14 +193,19 @@ mod tests {
             DVec3::new(9.0, 9.0, 9.0),
         ];
         let m = merge(&x, &[7, 7, NO_VOXEL, 7, 3], &[1.0, 1.0, 0.5, 2.0, 1.0]);
-        assert_eq!(m.skin.carrier(), &[0, 0, 1, 0, 2]);
-        assert_eq!(m.skin.particles(), 3);
-        assert_eq!(m.volumes, vec![4.0, 0.5, 1.0]);
+        // The stray (input 2) rides the nearest particle, the other voxel's, at no volume.
+        assert_eq!(m.skin.carrier(), &[0, 0, 1, 0, 1]);
+        assert_eq!(m.skin.particles(), 2);
+        assert_eq!(m.volumes, vec![4.0, 1.0]);
         // (0 + 1 + 2·(0, 2, 0)) / 4.
         assert_eq!(m.particles[0], DVec3::new(0.25, 1.0, 0.0));
-        assert_eq!(m.particles[1], x[2]);
+        assert_eq!(m.particles[1], x[4]);
+        // Strays alone (no input in the solid) stay particles, at their own volume.
+        let alone = merge(&x[..2], &[NO_VOXEL; 2], &[0.5, 0.25]);
+        assert_eq!(alone.skin.carrier(), &[0, 1]);
+        assert_eq!(alone.volumes, vec![0.5, 0.25]);
         // The skin puts every input back where it was at rest, whatever F is at rest (I).
-        let back = m.skin.positions(&m.particles, &[DMat3::IDENTITY; 3]);
+        let back = m.skin.positions(&m.particles, &[DMat3::IDENTITY; 2]);
         for (a, b) in back.iter().zip(&x) {
             assert!((*a - *b).length() < 1e-15, "{a} vs {b}");
         }
@@ -195,7 +213,7 @@ mod tests {
         assert!(Skin::identity(4).is_identity());
         // Under F the offsets turn with the carrier.
         let f = DMat3::from_rotation_z(0.5) * 2.0;
-        let moved = m.skin.positions(&m.particles, &[f; 3]);
+        let moved = m.skin.positions(&m.particles, &[f; 2]);
         assert!((moved[1] - (m.particles[0] + f * (x[1] - m.particles[0]))).length() < 1e-15);
     }
 }

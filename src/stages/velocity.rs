@@ -240,7 +240,7 @@ impl VelocityResult {
 impl TypedStage for Velocity {
     type Params = VelocityParams;
     const KIND: &'static str = "velocity";
-    const VERSION: u32 = 9;
+    const VERSION: u32 = 10;
     const DESCRIPTION: &'static str = "Learn the initial velocity from the first frames (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup"];
 
@@ -366,6 +366,11 @@ impl TypedStage for Velocity {
         check_family_guess(&material, &p.guess, ctx.name)?;
         let object = inputs.object(ctx, &material, p.cells)?;
         let centre = object.centre_of_mass().to_array();
+        let start_motion = RigidVelocity {
+            linear: start_v.to_array(),
+            angular: [0.0; 3],
+            centre,
+        };
         let targets = inputs.train_targets(last)?;
         let weights = LossWeights {
             lambda: p.lambda,
@@ -373,11 +378,6 @@ impl TypedStage for Velocity {
         };
         let fluid = is_fluid(inputs.family);
         let mut loss = ViewsLoss::new(&object, fluid, &targets, weights, inputs.background);
-        let start_motion = RigidVelocity {
-            linear: start_v.to_array(),
-            angular: [0.0; 3],
-            centre,
-        };
         let closed = p.closed_form
             && in_free_flight
             && free_flight::touches_nothing(&object, &start_motion, last);

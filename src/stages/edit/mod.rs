@@ -247,7 +247,7 @@ pub struct Edit;
 impl TypedStage for Edit {
     type Params = EditParams;
     const KIND: &'static str = "edit";
-    const VERSION: u32 = 6;
+    const VERSION: u32 = 7;
     const DESCRIPTION: &'static str = "Simulate new motion of the learned scene (forces, impulses, material, gravity and boundary changes) and render it as PNG frames, GIFs, MP4s and per-frame 3DGS PLYs";
     const UPSTREAM: &'static [&'static str] = &[
         "ingest", "init", "warmup", "velocity", "material", "evaluate",
