@@ -133,6 +133,12 @@ impl Object {
     }
 
     /// The object of `gaussians` (canonical, e.g. the `warmup` fit).
+    ///
+    /// The grid has `s.cells` cells across the filled solid's largest extent. The Gaussians'
+    /// own box gives the first estimate; when faint splats around the body (which ride it and
+    /// weigh nothing) make that box larger than the solid by more than a cell, the body is
+    /// built again on the solid's box: from four cameras a loose visual hull left faint splats
+    /// over a metre for a 0.3 m blob, and its grid was three times too coarse.
     pub fn build(gaussians: &Gaussians, s: &ObjectSettings<'_>) -> Result<Self, SimulateError> {
         let x: Vec<DVec3> = gaussians
             .position
@@ -143,7 +149,24 @@ impl Object {
             crate::scene::neighbors::bounds(&x).ok_or_else(|| SimulateError::NoParticles {
                 path: s.label.clone(),
             })?;
-        let dx = (hi - lo).max_element().max(1e-6) / s.cells;
+        let extent = (hi - lo).max_element().max(1e-6);
+        let first = Self::build_on(gaussians, &x, s, extent / s.cells)?;
+        let solid = crate::scene::neighbors::bounds(&first.body.state.x)
+            .map_or(extent, |(lo, hi)| (hi - lo).max_element().max(1e-6));
+        if extent - solid > first.body.setup.dx {
+            Self::build_on(gaussians, &x, s, solid / s.cells)
+        } else {
+            Ok(first)
+        }
+    }
+
+    /// The body of `gaussians` (centres `x`, m) on a grid of cell `dx` (m).
+    fn build_on(
+        gaussians: &Gaussians,
+        x: &[DVec3],
+        s: &ObjectSettings<'_>,
+        dx: f64,
+    ) -> Result<Self, SimulateError> {
         let keep = main_body(gaussians, dx);
         let kept = select(gaussians, &keep);
         let floaters = gaussians.len() - kept.len();

@@ -241,6 +241,47 @@ fn rollout_loss(object: &Object, values: &MaterialValues, v0: &[DVec3], frames: 
     .loss()
 }
 
+/// Faint splats strewn far around the body (a loose visual hull's leftovers) neither weigh
+/// nor set the grid: the cells go across the filled solid, as without them, not across the
+/// faint splats' box ten times larger (it was, and the grid was that much coarser).
+#[test]
+fn faint_splats_around_the_body_do_not_coarsen_its_grid() {
+    let alone = object_of(&block());
+    let mut g = block();
+    for i in 0..31 {
+        g.id.push(1000 + i as u32);
+        g.position.push([-0.3 + 0.02 * i as f32, 0.1, 0.0]);
+        g.log_scale.push([0.005f32.ln(); 3]);
+        g.rotation.push([1.0, 0.0, 0.0, 0.0]);
+        g.opacity_logit.push((0.01f32 / 0.99).ln());
+        g.sh.extend([0.1f32; 12]);
+        g.simulated.push(true);
+    }
+    let with = object_of(&g);
+    let (a, b) = (alone.body.setup.dx, with.body.setup.dx);
+    println!(
+        "dx {a} alone, {b} with faint splats; mass {} / {} kg; {} / {} particles",
+        alone.mass(),
+        with.mass(),
+        alone.particles(),
+        with.particles()
+    );
+    assert!(a.is_finite() && b.is_finite());
+    // The faint splats' box is 0.6 m across: 0.15 m cells for 4 cells across.
+    assert!(b < 0.03, "the grid follows the faint splats: dx {b}");
+    assert!(
+        (b / a - 1.0).abs() < 0.25,
+        "dx {b} against {a} without them"
+    );
+    assert!(
+        (with.mass() / alone.mass() - 1.0).abs() < 0.25,
+        "mass {} against {}",
+        with.mass(),
+        alone.mass()
+    );
+    assert_eq!(with.gaussians.len() + with.floaters, g.len());
+}
+
 #[test]
 fn material_and_velocity_gradients_match_finite_differences_through_render_and_mpm() {
     let object = object();
