@@ -224,8 +224,8 @@ pub struct NextMaterial {
     pub moduli: Option<Moduli>,
 }
 
-/// Substeps between tape checkpoints: a frame's reversal then recomputes each substep about
-/// three times with the default snapshots (memory: one state per checkpoint).
+/// Substeps between tape checkpoints (memory: one state per checkpoint); see
+/// [`backward_options`] for the reversal of each segment.
 const CHECKPOINT_EVERY: usize = 16;
 
 /// Called after each frame's backward pass of a [`Rollout::run_online`] with the frame and its
@@ -364,7 +364,7 @@ impl ModelVisitor for Visit<'_, '_> {
                     &tape,
                     &mat,
                     |k, _| (k == n).then(|| seed.clone()),
-                    BackwardOptions::default(),
+                    backward_options(),
                 )
                 .map_err(sim_err(frame))?;
             let (grad, frame_moduli) = frame_gradient(&values, moduli.as_ref(), &g.material);
@@ -406,7 +406,7 @@ impl ModelVisitor for Visit<'_, '_> {
                         &tape,
                         &mat,
                         |k, _| (k == n).then(|| seed.clone()),
-                        BackwardOptions::default(),
+                        backward_options(),
                     )
                     .map_err(sim_err(frame))?;
                 let (grad, frame_moduli) = frame_gradient(&values, moduli.as_ref(), &g.material);
@@ -439,4 +439,17 @@ impl ModelVisitor for Visit<'_, '_> {
 /// Whether a family's particles render as a fluid (their `F` holds only the volume ratio).
 pub fn is_fluid(family: MaterialFamily) -> bool {
     matches!(family, MaterialFamily::Newtonian)
+}
+
+/// The backward pass's options: `CHECKPOINT_EVERY − 1` recomputed states alive while a segment
+/// is reversed, so each substep is recomputed once and its intermediates kept (the adjoint step
+/// then skips its own forward recomputation), against about three times with the default four.
+/// Gradients are bit-identical. Measured (`--until material --force material`, draft, one run
+/// each): blob-plasticine one epoch 61 → 51 s (peak RSS 290 → 320 MB), torus-elastic material
+/// stage 79 → 68 s (389 → 394 MB).
+fn backward_options() -> BackwardOptions {
+    BackwardOptions {
+        snapshots: CHECKPOINT_EVERY - 1,
+        ..BackwardOptions::default()
+    }
 }
