@@ -8,7 +8,7 @@ use glam::DVec3;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
-use super::object::{Object, ObjectSettings};
+use super::object::{Object, ObjectSettings, Resolution};
 use super::params::MaterialValues;
 use crate::pipeline::spec::{MaterialFamily, SceneSpec};
 use crate::pipeline::stage::{StageContext, StageError};
@@ -137,17 +137,17 @@ impl Inputs {
         super::object::render_filter(&views, &self.gaussians)
     }
 
-    /// The object at `material`, on a grid of `cells` across it.
+    /// The object at `material`, on a grid of resolution `grid`.
     pub fn object(
         &self,
         ctx: &StageContext<'_>,
         material: &MaterialValues,
-        cells: f64,
+        grid: Resolution,
     ) -> Result<Object, StageError> {
         let settings = ObjectSettings {
             scene: ctx.scene,
             frame_dt: self.frame_dt,
-            cells,
+            grid,
             material: material.spec(),
             frames: u32::from(self.last_frame()) + 1,
             label: PathBuf::from(format!("stages.{}", ctx.name)),

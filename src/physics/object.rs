@@ -34,8 +34,8 @@ pub struct ObjectSettings<'a> {
     pub scene: &'a SceneSpec,
     /// Time between frames (s).
     pub frame_dt: f64,
-    /// Grid cells across the object's largest extent.
-    pub cells: f64,
+    /// How fine the grid is.
+    pub grid: Resolution,
     /// The material to build the body with (its masses and volumes do not depend on it).
     pub material: MaterialSpec,
     /// Frames the body is simulated for (only the summary's time estimates use it).
@@ -49,6 +49,31 @@ pub struct ObjectSettings<'a> {
     /// them ([`crate::simulate::spec::BoundarySpec::Anchor`]); `None`: no anchor.
     pub anchor: Option<std::sync::Arc<Vec<[f64; 3]>>>,
 }
+
+/// How fine a physics stage's grid is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Resolution {
+    /// Cells across the filled solid's largest extent.
+    Cells(f64),
+    /// Cell edge (m), whatever the object's size.
+    Dx(f64),
+}
+
+impl Resolution {
+    /// A stage's `cells` and `dx` (m): `dx` wins when set.
+    pub fn of(cells: f64, dx: Option<f64>) -> Self {
+        dx.map_or(Self::Cells(cells), Self::Dx)
+    }
+
+    /// From a physics stage's resolved parameters (`cells`, and `dx` when set).
+    pub fn from_params(params: &serde_json::Value) -> Option<Self> {
+        let cells = params["cells"].as_f64()?;
+        Some(Self::of(cells, params["dx"].as_f64()))
+    }
+}
+
+/// Most cells a `dx` may put across the object (as `cells` allows).
+pub const MAX_CELLS: f64 = 512.0;
 
 /// The simulated object.
 #[derive(Debug, Clone)]
@@ -134,7 +159,9 @@ impl Object {
 
     /// The object of `gaussians` (canonical, e.g. the `warmup` fit).
     ///
-    /// The grid has `s.cells` cells across the filled solid's largest extent. The Gaussians'
+    /// With [`Resolution::Dx`] the grid has that cell (refused when it puts more than
+    /// [`MAX_CELLS`] across the object). With [`Resolution::Cells`] it has that many cells
+    /// across the filled solid's largest extent. The Gaussians'
     /// own box gives the first estimate; when faint splats around the body (which ride it and
     /// weigh nothing) make that box larger than the solid by more than a cell, the body is
     /// built again on the solid's box: from four cameras a loose visual hull left faint splats
@@ -150,11 +177,26 @@ impl Object {
                 path: s.label.clone(),
             })?;
         let extent = (hi - lo).max_element().max(1e-6);
-        let first = Self::build_on(gaussians, &x, s, extent / s.cells)?;
+        let cells = match s.grid {
+            Resolution::Cells(cells) => cells,
+            Resolution::Dx(dx) => {
+                let across = extent / dx;
+                if !(dx.is_finite() && dx > 0.0 && across <= MAX_CELLS) {
+                    return Err(SimulateError::Spacing {
+                        path: PathBuf::from(format!("{}.dx", s.label.display())),
+                        message: format!(
+                            "a cell of {dx} m puts {across:.0} cells across the object's {extent:.3} m; at most {MAX_CELLS} are allowed (set a larger `dx` or `cells`)"
+                        ),
+                    });
+                }
+                return Self::build_on(gaussians, &x, s, dx);
+            }
+        };
+        let first = Self::build_on(gaussians, &x, s, extent / cells)?;
         let solid = crate::scene::neighbors::bounds(&first.body.state.x)
             .map_or(extent, |(lo, hi)| (hi - lo).max_element().max(1e-6));
         if extent - solid > first.body.setup.dx {
-            Self::build_on(gaussians, &x, s, solid / s.cells)
+            Self::build_on(gaussians, &x, s, solid / cells)
         } else {
             Ok(first)
         }

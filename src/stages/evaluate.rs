@@ -26,6 +26,7 @@ use crate::physics::fit::{FitError, Inputs, PrecisionParam};
 use crate::physics::material_field::read_moduli;
 use crate::physics::material_truth::MaterialTruthErrors;
 use crate::physics::object::Object;
+use crate::physics::object::Resolution;
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::pose::Pose;
 use crate::physics::rollout::{FrameLoss, Moduli, Rollout, RolloutError, Wants, is_fluid};
@@ -308,8 +309,8 @@ impl TypedStage for Evaluate {
                 values.values.insert(q, v);
             }
         }
-        let cells = object_cells(ctx)?;
-        let object = inputs.object(ctx, &values, cells)?;
+        let grid = material_grid(ctx)?;
+        let object = inputs.object(ctx, &values, grid)?;
         let v0 = velocity.velocities(&object, &ctx.upstream("velocity")?.dir)?;
         // A field is a function of the rest position: asked at this object's particles.
         let rest: Vec<[f64; 3]> = object.body.state.x.iter().map(|x| x.to_array()).collect();
@@ -609,7 +610,6 @@ impl TypedStage for Evaluate {
     }
 }
 
-/// The grid cells the `material` stage simulated with (its resolved parameters).
 /// Writes `gaussians.arrow`: the warm-up's Gaussians (`all`, floaters included) with the
 /// colours of the simulated ones (`refitted`, matched by id) replaced: what `edit` renders.
 fn write_refitted(all: &Gaussians, refitted: &Gaussians, out: &Path) -> Result<(), StageError> {
@@ -733,15 +733,14 @@ fn refit_colours(
     Ok((sh, refit))
 }
 
-fn object_cells(ctx: &StageContext<'_>) -> Result<f64, StageError> {
+/// The grid the `material` stage simulated with (its resolved parameters).
+fn material_grid(ctx: &StageContext<'_>) -> Result<Resolution, StageError> {
     let m = ctx.upstream("material")?;
-    m.manifest.key_material.params["cells"]
-        .as_f64()
-        .ok_or_else(|| {
-            StageError::failed(FitError::Invalid(
-                "the `material` entry has no `cells` parameter".into(),
-            ))
-        })
+    Resolution::from_params(&m.manifest.key_material.params).ok_or_else(|| {
+        StageError::failed(FitError::Invalid(
+            "the `material` entry has no `cells` parameter".into(),
+        ))
+    })
 }
 
 fn train_error(e: RolloutError) -> StageError {

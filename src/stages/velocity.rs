@@ -23,6 +23,7 @@ use crate::physics::fit::{FitError, Inputs, PrecisionParam, RigidVelocity};
 use crate::physics::free_flight;
 use crate::physics::material_field::percentiles;
 use crate::physics::object::Object;
+use crate::physics::object::Resolution;
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::rollout::{Rollout, RolloutError, Wants, is_fluid};
 use crate::physics::step_search::{StepSearch, lerp, stalled};
@@ -105,6 +106,13 @@ pub struct VelocityParams {
     /// Grid cells across the object's largest extent.
     #[serde(default = "cells")]
     pub cells: f64,
+    /// Grid cell (m), whatever the object's size; when set it replaces `cells`. The
+    /// parameters of plastic and viscous materials are those of the simulation at its cell
+    /// (MLS-MPM is not grid-converged at these resolutions): to compare with another
+    /// simulator's values, or to reuse the learned ones there, set the cell it uses
+    /// (PAC-NeRF's synthetic scenes: 0.02 m).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dx: Option<f64>,
     /// Precision of the simulation and its adjoint.
     #[serde(default)]
     pub precision: PrecisionParam,
@@ -293,6 +301,11 @@ impl TypedStage for Velocity {
         if !(p.cells.is_finite() && p.cells >= 4.0 && p.cells <= 512.0) {
             return bad("cells", format!("must be in [4, 512], found {}", p.cells));
         }
+        if let Some(dx) = p.dx
+            && !(dx.is_finite() && dx > 0.0)
+        {
+            return bad("dx", format!("must be a cell edge > 0 m, found {dx}"));
+        }
         if !(0.0..=1.0).contains(&p.lambda) {
             return bad("lambda", format!("must be in [0, 1], found {}", p.lambda));
         }
@@ -364,7 +377,7 @@ impl TypedStage for Velocity {
         };
         let material = MaterialValues::guess(inputs.family, ctx.scene.density, &p.guess);
         check_family_guess(&material, &p.guess, ctx.name)?;
-        let object = inputs.object(ctx, &material, p.cells)?;
+        let object = inputs.object(ctx, &material, Resolution::of(p.cells, p.dx))?;
         let centre = object.centre_of_mass().to_array();
         let start_motion = RigidVelocity {
             linear: start_v.to_array(),

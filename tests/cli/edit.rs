@@ -98,7 +98,7 @@ fn scene(gaussians: Gaussians, e: f64, boundaries: Vec<BoundaryItem>, frame_dt: 
         velocity_field: None,
         frame_dt: Some(frame_dt),
         frames: 2,
-        cells: 16.0,
+        grid: pipe::physics::object::Resolution::Cells(16.0),
         splat_filter: 0.0,
         views: BTreeMap::new(),
         default_views: Vec::new(),

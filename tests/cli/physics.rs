@@ -12,12 +12,13 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use glam::DVec3;
-use pipe::physics::object::{Object, ObjectSettings};
+use pipe::physics::object::{Object, ObjectSettings, Resolution};
 use pipe::physics::params::{MaterialValues, Param};
 use pipe::physics::pose::Pose;
 use pipe::physics::rollout::{FrameLoss, Moduli, Rollout, RolloutError, Truncate, Wants};
 use pipe::pipeline::spec::{MaterialFamily, SceneSpec};
 use pipe::scene::gaussians::Gaussians;
+use pipe::simulate::SimulateError;
 use pipe_mpm::{Precision, State, StateGrad};
 
 use crate::support::hash;
@@ -167,6 +168,10 @@ fn object() -> Object {
 }
 
 fn object_of(gaussians: &Gaussians) -> Object {
+    object_on(gaussians, Resolution::Cells(4.0)).unwrap()
+}
+
+fn object_on(gaussians: &Gaussians, grid: Resolution) -> Result<Object, SimulateError> {
     let scene = scene();
     let material = MaterialValues::guess(
         MaterialFamily::Elastic,
@@ -178,17 +183,16 @@ fn object_of(gaussians: &Gaussians) -> Object {
         &ObjectSettings {
             scene: &scene,
             frame_dt: 0.01,
-            cells: 4.0,
+            grid,
             material: material.spec(),
             frames: 3,
             label: PathBuf::from("tiny"),
             splat_filter: 0.0,
             anchor: None,
         },
-    )
-    .unwrap();
+    )?;
     o.spec.substeps = Some(10);
-    o
+    Ok(o)
 }
 
 fn velocity(object: &Object, shift: DVec3) -> Vec<DVec3> {
@@ -280,6 +284,26 @@ fn faint_splats_around_the_body_do_not_coarsen_its_grid() {
         alone.mass()
     );
     assert_eq!(with.gaussians.len() + with.floaters, g.len());
+}
+
+/// A given cell (m) is the grid's, whatever the object's size (and `cells` is ignored); one
+/// that would put more than `MAX_CELLS` across the object is refused, naming `dx`.
+#[test]
+fn a_given_cell_sets_the_grid_and_a_too_fine_one_is_refused() {
+    let g = block();
+    for dx in [0.02, 0.035] {
+        let o = object_on(&g, Resolution::Dx(dx)).unwrap();
+        assert_eq!(o.body.setup.dx, dx);
+        assert!(o.particles() > 0 && o.mass().is_finite());
+    }
+    let coarse = object_on(&g, Resolution::Dx(0.035)).unwrap();
+    let fine = object_on(&g, Resolution::Dx(0.02)).unwrap();
+    assert!(fine.particles() > coarse.particles());
+    let err = object_on(&g, Resolution::Dx(1e-5)).unwrap_err().to_string();
+    assert!(
+        err.contains("tiny.dx") && err.contains("at most 512"),
+        "{err}"
+    );
 }
 
 #[test]

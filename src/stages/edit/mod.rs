@@ -47,7 +47,7 @@ use crate::io::image::Rgb8;
 use crate::io::video::{self, Mp4};
 use crate::physics::fit::frame_interval;
 use crate::physics::material_field::read_moduli;
-use crate::physics::object::{DEFAULT_CELLS, Object, ObjectSettings, render_filter};
+use crate::physics::object::{DEFAULT_CELLS, Object, ObjectSettings, Resolution, render_filter};
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::rollout::{Moduli, is_fluid, material_of};
 use crate::pipeline::progress::Progress;
@@ -117,8 +117,8 @@ pub struct Scene {
     /// give `frame_dt`) and frame count.
     pub frame_dt: Option<f64>,
     pub frames: u32,
-    /// Grid cells across the object unless the edit says (the `material` stage's).
-    pub cells: f64,
+    /// The grid unless the edit gives `cells` (the `material` stage's).
+    pub grid: Resolution,
     /// The rasterizer's filter (m) in the images the Gaussians were fitted to.
     pub splat_filter: f64,
     /// The capture's cameras with their background plates.
@@ -361,9 +361,9 @@ fn read_scene(ctx: &StageContext<'_>) -> Result<Scene, EditError> {
             None => None,
         },
     };
-    let cells = material
-        .and_then(|m| m.manifest.key_material.params["cells"].as_f64())
-        .unwrap_or(DEFAULT_CELLS);
+    let grid = material
+        .and_then(|m| Resolution::from_params(&m.manifest.key_material.params))
+        .unwrap_or(Resolution::Cells(DEFAULT_CELLS));
     let single_frame = frames.rows.iter().all(|r| r.frame == frames.rows[0].frame);
     let frame_dt = match single_frame {
         // A still capture (a PhysDreamer scene of one frame, a static multi-view set) has no
@@ -415,7 +415,7 @@ fn read_scene(ctx: &StageContext<'_>) -> Result<Scene, EditError> {
         velocity_field,
         frame_dt,
         frames: u32::from(frame_count) + 1,
-        cells,
+        grid,
         splat_filter,
         views,
         default_views,
@@ -683,7 +683,7 @@ pub fn run(
         }
     };
     let frames = p.frames.unwrap_or(scene.frames).max(2);
-    let cells = p.cells.unwrap_or(scene.cells);
+    let grid = p.cells.map_or(scene.grid, Resolution::Cells);
     let (moving, fixed) = split(&scene.gaussians);
     if moving.is_empty() {
         return Err(EditError::Inputs(format!(
@@ -694,7 +694,7 @@ pub fn run(
     let settings = ObjectSettings {
         scene: &sim_scene,
         frame_dt,
-        cells,
+        grid,
         material: material.spec(),
         frames,
         label: PathBuf::from(&location),
@@ -710,6 +710,12 @@ pub fn run(
         }),
     };
     let mut object = Object::build(&moving, &settings).map_err(sim_error)?;
+    // Cells across the object (given, or what a given cell makes of it).
+    let cells = match grid {
+        Resolution::Cells(cells) => cells,
+        Resolution::Dx(dx) => crate::scene::neighbors::bounds(&object.body.state.x)
+            .map_or(0.0, |(lo, hi)| (hi - lo).max_element() / dx),
+    };
     if let Some(moduli) = field_moduli(scene, &p.material, &material, &object)
         .map_err(|e| EditError::Inputs(format!("{location}: {e}")))?
     {
