@@ -58,8 +58,8 @@ pub struct EditParams {
     /// simulates.
     #[serde(default = "yes")]
     pub anchor: bool,
-    /// Grid cells across the object's largest extent; default: the `material` stage's (24
-    /// without one).
+    /// Grid cells across the object's largest extent; default: the `material` stage's grid
+    /// (its `dx` when it has one, else its `cells`; 24 cells without a `material` stage).
     #[serde(default)]
     pub cells: Option<f64>,
     /// Precision of the simulation.
