@@ -306,6 +306,38 @@ fn a_given_cell_sets_the_grid_and_a_too_fine_one_is_refused() {
     );
 }
 
+/// A grid cell that is not a positive length is refused by name when the pipeline loads.
+#[test]
+fn a_grid_cell_that_is_not_a_length_is_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let reg = pipe::stages::builtin();
+    for (velocity, material, want) in [
+        (
+            "{}",
+            "{dx: -1}",
+            "stages.material.dx: must be a cell edge > 0 m, found -1",
+        ),
+        (
+            "{dx: 0}",
+            "{}",
+            "stages.velocity.dx: must be a cell edge > 0 m, found 0",
+        ),
+    ] {
+        let file = demo_pipeline(
+            dir.path(),
+            "draft",
+            &format!(
+                "  ingest: {{}}\n  init: {{}}\n  warmup: {{}}\n  velocity: {velocity}\n  material: {material}\n"
+            ),
+        );
+        let e = pipe::pipeline::spec::load(&file, &reg, &Default::default())
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(e.contains(want), "{e}");
+    }
+}
+
 #[test]
 fn material_and_velocity_gradients_match_finite_differences_through_render_and_mpm() {
     let object = object();
