@@ -65,6 +65,23 @@ impl Resolution {
         dx.map_or(Self::Cells(cells), Self::Dx)
     }
 
+    /// Checks a stage's `cells` (in [4, [`MAX_CELLS`]]) and `dx` (a length > 0 m when set):
+    /// the field at fault and why.
+    pub fn check(cells: f64, dx: Option<f64>) -> Result<(), (&'static str, String)> {
+        if !(cells.is_finite() && (4.0..=MAX_CELLS).contains(&cells)) {
+            return Err((
+                "cells",
+                format!("must be in [4, {MAX_CELLS}], found {cells}"),
+            ));
+        }
+        match dx {
+            Some(dx) if !(dx.is_finite() && dx > 0.0) => {
+                Err(("dx", format!("must be a cell edge > 0 m, found {dx}")))
+            }
+            _ => Ok(()),
+        }
+    }
+
     /// From a physics stage's resolved parameters (`cells`, and `dx` when set).
     pub fn from_params(params: &serde_json::Value) -> Option<Self> {
         let cells = params["cells"].as_f64()?;
@@ -72,7 +89,7 @@ impl Resolution {
     }
 }
 
-/// Most cells a `dx` may put across the object (as `cells` allows).
+/// Most cells across the object, given as `cells` or made by a `dx`.
 pub const MAX_CELLS: f64 = 512.0;
 
 /// The simulated object.

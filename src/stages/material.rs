@@ -28,8 +28,7 @@ use crate::physics::adam::{Adam, AdamConfig, decayed};
 use crate::physics::descent::{Iteration, LineSearch, Probe, probe};
 use crate::physics::fit::{FitError, Inputs, PrecisionParam};
 use crate::physics::material_field::{FieldSettings, colour_of, percentiles, write_weights};
-use crate::physics::object::Resolution;
-use crate::physics::object::sim_yaml;
+use crate::physics::object::{Resolution, sim_yaml};
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::rollout::{
     FrameGradient, NextMaterial, Rollout, RolloutError, Truncate, Wants, is_fluid,
@@ -122,7 +121,7 @@ pub struct MaterialParams {
     /// parameters of plastic and viscous materials are those of the simulation at its cell
     /// (MLS-MPM is not grid-converged at these resolutions): to compare with another
     /// simulator's values, or to reuse the learned ones there, set the cell it uses
-    /// (PAC-NeRF's synthetic scenes: 0.02 m).
+    /// (the sample scenes were made at 0.02 m).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dx: Option<f64>,
     /// Precision of the simulation and its adjoint.
@@ -303,13 +302,8 @@ impl TypedStage for MaterialStage {
                 return bad(name, format!("must be finite and >= 0, found {v}"));
             }
         }
-        if !(p.cells.is_finite() && p.cells >= 4.0 && p.cells <= 512.0) {
-            return bad("cells", format!("must be in [4, 512], found {}", p.cells));
-        }
-        if let Some(dx) = p.dx
-            && !(dx.is_finite() && dx > 0.0)
-        {
-            return bad("dx", format!("must be a cell edge > 0 m, found {dx}"));
+        if let Err((field, message)) = Resolution::check(p.cells, p.dx) {
+            return bad(field, message);
         }
         if !(0.0..=1.0).contains(&p.lambda) {
             return bad("lambda", format!("must be in [0, 1], found {}", p.lambda));

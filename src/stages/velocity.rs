@@ -22,8 +22,7 @@ use crate::physics::descent::LineSearch;
 use crate::physics::fit::{FitError, Inputs, PrecisionParam, RigidVelocity};
 use crate::physics::free_flight;
 use crate::physics::material_field::percentiles;
-use crate::physics::object::Object;
-use crate::physics::object::Resolution;
+use crate::physics::object::{Object, Resolution};
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::rollout::{Rollout, RolloutError, Wants, is_fluid};
 use crate::physics::step_search::{StepSearch, lerp, stalled};
@@ -110,7 +109,7 @@ pub struct VelocityParams {
     /// parameters of plastic and viscous materials are those of the simulation at its cell
     /// (MLS-MPM is not grid-converged at these resolutions): to compare with another
     /// simulator's values, or to reuse the learned ones there, set the cell it uses
-    /// (PAC-NeRF's synthetic scenes: 0.02 m).
+    /// (the sample scenes were made at 0.02 m).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dx: Option<f64>,
     /// Precision of the simulation and its adjoint.
@@ -298,13 +297,8 @@ impl TypedStage for Velocity {
                 return bad(name, format!("must be finite and >= 0, found {v}"));
             }
         }
-        if !(p.cells.is_finite() && p.cells >= 4.0 && p.cells <= 512.0) {
-            return bad("cells", format!("must be in [4, 512], found {}", p.cells));
-        }
-        if let Some(dx) = p.dx
-            && !(dx.is_finite() && dx > 0.0)
-        {
-            return bad("dx", format!("must be a cell edge > 0 m, found {dx}"));
+        if let Err((field, message)) = Resolution::check(p.cells, p.dx) {
+            return bad(field, message);
         }
         if !(0.0..=1.0).contains(&p.lambda) {
             return bad("lambda", format!("must be in [0, 1], found {}", p.lambda));

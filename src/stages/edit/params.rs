@@ -5,6 +5,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 use crate::physics::fit::PrecisionParam;
+use crate::physics::object::Resolution;
 use crate::physics::params::Param;
 use crate::pipeline::spec::{BoundaryItem, MaterialFamily};
 use crate::pipeline::stage::ParamError;
@@ -407,9 +408,9 @@ pub fn validate(p: &EditParams) -> Result<(), ParamError> {
         return bad("frame_dt", format!("must be > 0 (s), found {dt}"));
     }
     if let Some(c) = p.cells
-        && !(c.is_finite() && (4.0..=512.0).contains(&c))
+        && let Err((field, message)) = Resolution::check(c, None)
     {
-        return bad("cells", format!("must be in [4, 512], found {c}"));
+        return bad(field, message);
     }
     if let Some(ms) = p.gif_ms
         && !(1..=10_000).contains(&ms)
