@@ -85,6 +85,10 @@ pub struct Args {
     /// Initial velocity x,y,z (m/s).
     #[arg(long, value_delimiter = ',', default_values_t = [0.2, -0.8, 0.1], allow_negative_numbers = true)]
     pub v0: Vec<f64>,
+    /// Initial angular velocity x,y,z (rad/s) about the centre of mass: a tumbling throw
+    /// (`--v0` is then the centre of mass's velocity).
+    #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.0, 0.0], allow_negative_numbers = true)]
+    pub spin: Vec<f64>,
     /// Image width and height (pixels).
     #[arg(long, default_value_t = 100)]
     pub size: u32,
@@ -104,7 +108,11 @@ pub struct Args {
 
 impl Args {
     fn check(&self) -> Result<()> {
-        for (name, v) in [("extent", &self.extent), ("v0", &self.v0)] {
+        for (name, v) in [
+            ("extent", &self.extent),
+            ("v0", &self.v0),
+            ("spin", &self.spin),
+        ] {
             if v.len() != 3 || v.iter().any(|x| !x.is_finite()) {
                 bail!("--{name} {v:?}: expected three finite values x,y,z");
             }
@@ -167,6 +175,7 @@ impl Args {
         format!(
             "# datasets-tools scene: the generated object's simulation (pipe simulate's format)\n\
              material:\n{m}initial_velocity: [{:e}, {:e}, {:e}]\n\
+             angular_velocity: [{:e}, {:e}, {:e}]\n\
              gravity: [0, -9.8, 0]\n\
              particle_volume: {:e}\n\
              grid_dx: {:e}\n\
@@ -176,6 +185,9 @@ impl Args {
             self.v0[0],
             self.v0[1],
             self.v0[2],
+            self.spin[0],
+            self.spin[1],
+            self.spin[2],
             self.spacing.powi(3),
             2.0 * self.spacing,
             FRAME_DT,
@@ -363,8 +375,8 @@ fn params_json(
     json!({
         "scene": format!("generated-{}-{:?}", args.family, args.shape).to_lowercase(),
         "description": format!(
-            "a {:?} {:?} m of {} dropped from {} m with v0 {:?} m/s onto the sticky ground",
-            args.shape, args.extent, args.family, args.drop_height, args.v0
+            "a {:?} {:?} m of {} dropped from {} m with v0 {:?} m/s and spin {:?} rad/s onto the sticky ground",
+            args.shape, args.extent, args.family, args.drop_height, args.v0, args.spin
         ),
         "made_by": "datasets-tools scene",
         "simulator": "pipe simulate (pipe_mpm MLS-MPM, quadratic B-spline, APIC, f64; grid \
@@ -380,6 +392,7 @@ fn params_json(
         "kappa": args.bulk_modulus,
         "friction_angle_deg": args.friction_angle_deg,
         "v0": args.v0,
+        "angular_velocity": args.spin,
         "frame_dt": FRAME_DT,
         "n_frames": args.frames,
         "substeps": summary.frame_stats.iter().map(|s| s.substeps).collect::<Vec<_>>(),

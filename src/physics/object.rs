@@ -162,16 +162,7 @@ impl Object {
 
     /// The mass-weighted centre (m) of the initial state.
     pub fn centre_of_mass(&self) -> DVec3 {
-        let m = &self.body.material.mass;
-        let total: f64 = m.iter().sum();
-        self.body
-            .state
-            .x
-            .iter()
-            .zip(m)
-            .map(|(x, m)| *x * *m)
-            .sum::<DVec3>()
-            / total
+        self.body.centre_of_mass()
     }
 
     /// The object of `gaussians` (canonical, e.g. the `warmup` fit).
@@ -242,9 +233,14 @@ impl Object {
                 .map(|sp| sp.filtered(s.splat_filter))
             })
             .collect();
+        let at_rest = crate::physics::fit::RigidVelocity {
+            linear: [0.0; 3],
+            angular: [0.0; 3],
+            centre: [0.0; 3],
+        };
         let text = sim_yaml(
             &s.material,
-            [0.0; 3],
+            &at_rest,
             s.scene,
             s.frame_dt,
             dx,
@@ -363,11 +359,12 @@ fn select(g: &Gaussians, keep: &[usize]) -> Gaussians {
 }
 
 /// A simulation file (`pipe simulate --material`) for the object of `scene` with `material`,
-/// initial velocity `v0` (m/s), `frame_dt` (s), cell `grid_dx` (m) and, when given,
+/// the initial rigid `motion` (`v + ω × (x − c)`; the angular velocity and its centre are
+/// written only when `ω ≠ 0`), `frame_dt` (s), cell `grid_dx` (m) and, when given,
 /// `fill_interior`.
 pub fn sim_yaml(
     material: &MaterialSpec,
-    v0: [f64; 3],
+    motion: &crate::physics::fit::RigidVelocity,
     scene: &SceneSpec,
     frame_dt: f64,
     grid_dx: f64,
@@ -392,7 +389,11 @@ pub fn sim_yaml(
         }
     }
     let _ = writeln!(t, "  density: {}", num(material.density));
-    let _ = writeln!(t, "initial_velocity: {}", vec3(v0));
+    let _ = writeln!(t, "initial_velocity: {}", vec3(motion.linear));
+    if motion.angular != [0.0; 3] {
+        let _ = writeln!(t, "angular_velocity: {}", vec3(motion.angular));
+        let _ = writeln!(t, "spin_centre: {}", vec3(motion.centre));
+    }
     let _ = writeln!(t, "gravity: {}", vec3(scene.gravity));
     let _ = writeln!(t, "frame_dt: {}", num(frame_dt));
     let _ = writeln!(t, "grid_dx: {}", num(grid_dx));

@@ -281,6 +281,9 @@ pub fn run_with(
     }
     let setup = body.setup.clone();
     let carriers = body.n_input;
+    let body_spin_centre = spec
+        .spin_centre
+        .unwrap_or_else(|| body.centre_of_mass().to_array());
     let job = Job {
         spec: &spec,
         body,
@@ -337,6 +340,8 @@ pub fn run_with(
         forces: setup.forces.len(),
         gravity: spec.gravity,
         initial_velocity: spec.initial_velocity,
+        angular_velocity: spec.angular_velocity,
+        spin_centre: body_spin_centre,
         substeps_total,
         frame_stats: done.stats,
         held_total,
@@ -415,16 +420,41 @@ impl Body {
         }
         let mut x_all = x0;
         x_all.extend_from_slice(&setup.fill);
-        let mut state = State::at_rest(x_all);
-        let v0 = DVec3::from_array(spec.initial_velocity);
-        state.v.iter_mut().for_each(|v| *v = v0);
-        Ok(Self {
+        let mut body = Self {
             setup,
-            state,
+            state: State::at_rest(x_all),
             material,
             n_input: n,
             skin,
-        })
+        };
+        let (v0, w) = (
+            DVec3::from_array(spec.initial_velocity),
+            DVec3::from_array(spec.angular_velocity),
+        );
+        let c = spec
+            .spin_centre
+            .map_or_else(|| body.centre_of_mass(), DVec3::from_array);
+        // The rigid motion; APIC's affine velocity `C` starts at 0, as PAC-NeRF's, the stages'
+        // and the generated scenes' (so a turning body spins slower than ω on a coarse grid:
+        // `simulate::a_spinning_block_turns_about_its_centre_of_mass`).
+        let Body { state, .. } = &mut body;
+        for (v, x) in state.v.iter_mut().zip(&state.x) {
+            *v = v0 + w.cross(*x - c);
+        }
+        Ok(body)
+    }
+
+    /// The mass-weighted mean position of the simulated particles (m), at the initial state.
+    pub fn centre_of_mass(&self) -> DVec3 {
+        let m = &self.material.mass;
+        let total: f64 = m.iter().sum();
+        self.state
+            .x
+            .iter()
+            .zip(m)
+            .map(|(x, m)| *x * *m)
+            .sum::<DVec3>()
+            / total
     }
 
     /// The input points at `state`: their positions (m), velocities (m/s) and the deformation

@@ -265,8 +265,14 @@ pub struct Summary {
     pub forces: usize,
     /// Gravity (m/s²).
     pub gravity: [f64; 3],
-    /// Initial velocity (m/s).
+    /// Initial velocity (m/s): of every particle, or of `spin_centre` when the body spins.
     pub initial_velocity: [f64; 3],
+    /// Initial angular velocity (rad/s) about `spin_centre`.
+    #[serde(default)]
+    pub angular_velocity: [f64; 3],
+    /// The point the body spins about (m): the file's `spin_centre`, or the centre of mass.
+    #[serde(default)]
+    pub spin_centre: [f64; 3],
     /// Substeps over the whole run.
     pub substeps_total: usize,
     /// Per simulated frame.

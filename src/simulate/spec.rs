@@ -7,6 +7,7 @@
 //!   poisson_ratio: 0.3
 //!   density: 1000              # kg/m^3
 //! initial_velocity: [0.5, 0.0, -0.3]   # m/s, default 0
+//! angular_velocity: [0.0, 6.0, 0.0]    # rad/s about the centre of mass, default 0
 //! particle_volume: 1.0e-6              # m^3; default spacing^3
 //! gravity: [0, -9.8, 0]                # m/s^2, default (0, -9.8, 0)
 //! frame_dt: 0.041666666666666664       # s, required
@@ -24,6 +25,10 @@
 //! | `non_newtonian` | `youngs_modulus`, `poisson_ratio`, `yield_stress` (Pa), `viscosity` (Pa·s) |
 //! | `newtonian` | `viscosity` (μ, Pa·s), `bulk_modulus` (κ, Pa) |
 //! | `sand` | `youngs_modulus`, `poisson_ratio`, `friction_angle_deg` (degrees) |
+//!
+//! A body that spins starts with the rigid motion `v_p = initial_velocity + ω × (x_p − c)`
+//! (`ω` = `angular_velocity`, `c` = `spin_centre`, m, default the centre of mass of every
+//! simulated particle, fillers included): `initial_velocity` is then the centre's velocity.
 //!
 //! Other keys: `domain: {min: [..], max: [..]}` (m; default: see [`super::setup`]),
 //! `substeps` (a fixed count per frame; refused above the stability limit unless
@@ -249,8 +254,13 @@ pub struct SimSpec {
     pub file: PathBuf,
     /// `material:`.
     pub material: MaterialSpec,
-    /// Initial velocity of every particle (m/s).
+    /// Initial velocity (m/s): of every particle, or of `spin_centre` when the body spins.
     pub initial_velocity: [f64; 3],
+    /// Initial angular velocity (rad/s) about `spin_centre`.
+    pub angular_velocity: [f64; 3],
+    /// The point the body spins about (m); `None` = the centre of mass of the simulated
+    /// particles.
+    pub spin_centre: Option<[f64; 3]>,
     /// Volume of one particle (m³); `None` = spacing³.
     pub particle_volume: Option<f64>,
     /// Gravity (m/s²).
@@ -330,6 +340,16 @@ impl SimSpec {
                 ));
             }
         };
+        for (key, v) in [
+            ("initial_velocity", Some(raw.initial_velocity)),
+            ("angular_velocity", Some(raw.angular_velocity)),
+            ("spin_centre", raw.spin_centre),
+            ("gravity", Some(raw.gravity)),
+        ] {
+            if let Some(v) = v.filter(|v| v.iter().any(|x| !x.is_finite())) {
+                return Err(ctx.bad(key, &format!("{v:?}"), "must be three finite numbers"));
+            }
+        }
         let domain = raw.domain.map(|b| ctx.check_box("domain", b)).transpose()?;
         let boundaries = raw
             .boundaries
@@ -347,6 +367,8 @@ impl SimSpec {
             file: path.to_path_buf(),
             material,
             initial_velocity: raw.initial_velocity,
+            angular_velocity: raw.angular_velocity,
+            spin_centre: raw.spin_centre,
             particle_volume,
             gravity: raw.gravity,
             frame_dt,
@@ -468,6 +490,10 @@ struct RawSpec {
     material: Value,
     #[serde(default)]
     initial_velocity: [f64; 3],
+    #[serde(default)]
+    angular_velocity: [f64; 3],
+    #[serde(default)]
+    spin_centre: Option<[f64; 3]>,
     #[serde(default)]
     particle_volume: Option<f64>,
     #[serde(default = "default_gravity")]

@@ -145,11 +145,18 @@ pub struct Evaluation {
     /// The learned parameters (`material.json`'s, and the initial velocity, m/s).
     pub learned: BTreeMap<String, f64>,
     pub initial_velocity: [f64; 3],
-    /// The scene's ground truth, when it has one (same names; v0 in m/s).
+    /// The learned angular velocity about the centre of mass (rad/s).
+    #[serde(default)]
+    pub angular_velocity: [f64; 3],
+    /// The scene's ground truth, when it has one (same names; v0 in m/s, the angular velocity
+    /// in rad/s when `gt/params.json` gives `angular_velocity`).
     pub ground_truth: Option<BTreeMap<String, f64>>,
     pub ground_truth_v0: Option<[f64; 3]>,
+    #[serde(default)]
+    pub ground_truth_angular_velocity: Option<[f64; 3]>,
     /// Errors against it: `|log10 learned − log10 truth|` for moduli, stresses and
-    /// viscosities, absolute differences for ν and the friction angle, `|v0 − v0_true|` (m/s).
+    /// viscosities, absolute differences for ν and the friction angle, `|v0 − v0_true|` (m/s),
+    /// `|ω − ω_true|` (rad/s).
     pub errors: Option<BTreeMap<String, f64>>,
     /// Mean Chamfer distance (m) between simulated and true particles, per frame and at the
     /// last frame.
@@ -206,7 +213,7 @@ pub struct Evaluate;
 impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
-    const VERSION: u32 = 8;
+    const VERSION: u32 = 9;
     const DESCRIPTION: &'static str = "Re-simulate the learned scene and score it in every view and frame (PSNR, SSIM, mask IoU; parameter and Chamfer errors against ground truth)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "init", "warmup", "velocity", "material"];
 
@@ -501,7 +508,11 @@ impl TypedStage for Evaluate {
                 learned_map.insert(name.to_string(), v);
             }
         }
-        let (truth, truth_v0) = ground_truth(ctx.scene, &learned.family);
+        let Truth {
+            values: truth,
+            v0: truth_v0,
+            angular: truth_w,
+        } = ground_truth(ctx.scene, &learned.family);
         let errors = truth.as_ref().map(|t| {
             let mut e = BTreeMap::new();
             for (name, l) in &learned_map {
@@ -518,6 +529,12 @@ impl TypedStage for Evaluate {
                 e.insert(
                     "v0_m_s".into(),
                     (DVec3::from_array(velocity.initial_velocity) - DVec3::from_array(tv)).length(),
+                );
+            }
+            if let Some(tw) = truth_w {
+                e.insert(
+                    "angular_velocity_rad_s".into(),
+                    (DVec3::from_array(velocity.angular_velocity) - DVec3::from_array(tw)).length(),
                 );
             }
             e
@@ -541,8 +558,10 @@ impl TypedStage for Evaluate {
             colour_refit,
             learned: learned_map,
             initial_velocity: velocity.initial_velocity,
+            angular_velocity: velocity.angular_velocity,
             ground_truth: truth,
             ground_truth_v0: truth_v0,
+            ground_truth_angular_velocity: truth_w,
             errors,
             chamfer_last_frame_m: chamfer.last().copied().filter(|c| c.is_finite()),
             chamfer_per_frame_m: chamfer,
@@ -752,13 +771,22 @@ fn train_error(e: RolloutError) -> StageError {
     }
 }
 
-/// `gt/params.json`'s parameters under this project's names, and its `v0`.
-fn ground_truth(
-    scene: &SceneSpec,
-    family: &str,
-) -> (Option<BTreeMap<String, f64>>, Option<[f64; 3]>) {
+/// What `gt/params.json` says, when the scene has one.
+#[derive(Default)]
+struct Truth {
+    /// The parameters under this project's names.
+    values: Option<BTreeMap<String, f64>>,
+    /// `v0` (m/s).
+    v0: Option<[f64; 3]>,
+    /// `angular_velocity` (rad/s), when given.
+    angular: Option<[f64; 3]>,
+}
+
+/// `gt/params.json`'s parameters under this project's names, its `v0` and, when it gives
+/// one, its `angular_velocity`.
+fn ground_truth(scene: &SceneSpec, family: &str) -> Truth {
     let Some(gt) = crate::physics::fit::ground_truth(scene) else {
-        return (None, None);
+        return Truth::default();
     };
     let mut t = BTreeMap::new();
     let pick = |key: &str| gt[key].as_f64();
@@ -782,7 +810,12 @@ fn ground_truth(
         t.insert("viscosity".to_string(), v);
     }
     let v0 = serde_json::from_value::<[f64; 3]>(gt["v0"].clone()).ok();
-    (Some(t), v0)
+    let angular = serde_json::from_value::<[f64; 3]>(gt["angular_velocity"].clone()).ok();
+    Truth {
+        values: Some(t),
+        v0,
+        angular,
+    }
 }
 
 fn summary(e: &Evaluation) -> String {

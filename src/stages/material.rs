@@ -258,7 +258,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 12;
+    const VERSION: u32 = 13;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 
@@ -915,9 +915,22 @@ impl TypedStage for MaterialStage {
         };
         crate::io::write_json(&ctx.out_dir.join("material.json"), &out)
             .map_err(StageError::failed)?;
+        // The rigid part of the learned motion, about this body's centre of mass (as
+        // `VelocityResult::velocities` sets it); a velocity field's residual is not in the file.
+        let motion = crate::physics::fit::RigidVelocity {
+            linear: velocity.linear_velocity,
+            angular: velocity.angular_velocity,
+            centre: object.centre_of_mass().to_array(),
+        };
+        let residual_note = if velocity.model == crate::stages::velocity::VelocityModel::Field {
+            "# The learned velocity field's residual is not in this file (particles.arrow has\n\
+             # every particle's initial velocity): pipe simulate starts from its rigid part.\n"
+        } else {
+            ""
+        };
         let sim = sim_yaml(
             &spec,
-            velocity.initial_velocity,
+            &motion,
             ctx.scene,
             inputs.frame_dt,
             object.body.setup.dx,
@@ -929,7 +942,7 @@ impl TypedStage for MaterialStage {
             format!(
                 "# Learned by stage `{}` of {} (family {}); simulate the fitted Gaussians with\n\
                  #   pipe export FILE --stage warmup --format ply --out object.ply\n\
-                 #   pipe simulate object.ply --material scene.sim.yaml --frames {} --out sim --splats\n{sim}",
+                 #   pipe simulate object.ply --material scene.sim.yaml --frames {} --out sim --splats\n{residual_note}{sim}",
                 ctx.name,
                 ctx.scene.path.display(),
                 out.family,

@@ -868,6 +868,24 @@ fn the_demo_at_draft_learns_velocity_and_e_from_ten_times_too_stiff() {
         s["fill_particles"].as_u64().unwrap(),
     );
     assert_eq!(carriers + fill, m["particles"].as_u64().unwrap(), "{s}");
+    // The learned spin travels with the file: the same angular velocity, about the stage
+    // body's centre of mass, which `pipe simulate`'s body shares.
+    let w: [f64; 3] = serde_json::from_value(m["angular_velocity"].clone()).unwrap();
+    assert!(
+        w.iter().any(|w| *w != 0.0),
+        "a learned rigid motion turns a little: {w:?}"
+    );
+    let sw: [f64; 3] = serde_json::from_value(s["angular_velocity"].clone()).unwrap();
+    assert_eq!(sw, w, "{s}");
+    let c: [f64; 3] = serde_json::from_value(s["spin_centre"].clone()).unwrap();
+    let v: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(entry(dir.path(), &file, "velocity").join("velocity.json"))
+            .unwrap(),
+    )
+    .unwrap();
+    let com: [f64; 3] = serde_json::from_value(v["centre_of_mass"].clone()).unwrap();
+    let off = (DVec3::from_array(c) - DVec3::from_array(com)).length();
+    assert!(off < 1e-4, "spin centre {c:?} against the stage's {com:?}");
     assert!(carriers < s["particles_out"].as_u64().unwrap(), "{s}");
     // Every Gaussian is written, carried by its particle: moved by the fall, none left behind.
     let g0 = pipe::io::ply::read_gaussians(&ply).unwrap();

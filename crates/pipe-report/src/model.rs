@@ -274,6 +274,19 @@ fn parameters(
                 error_kind: error_kind("v0"),
             });
         }
+        if let Some(w) = e.get("angular_velocity") {
+            rows.push(ParameterRow {
+                name: "ω".into(),
+                unit: "rad/s".into(),
+                learned: w.clone(),
+                truth: e
+                    .get("ground_truth_angular_velocity")
+                    .cloned()
+                    .unwrap_or(Value::Null),
+                error: number(&errors, "angular_velocity_rad_s"),
+                error_kind: "|ω − ω_true| (rad/s)".into(),
+            });
+        }
         return Ok(rows);
     }
     if let Some((_, dir)) = entry(run, "material") {

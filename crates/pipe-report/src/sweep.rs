@@ -165,6 +165,7 @@ fn error_label(name: &str) -> String {
             format!("error of {name}: |Δlog10| (decades)")
         }
         "v0_m_s" => "error of v0: |Δv0| (m/s)".into(),
+        "angular_velocity_rad_s" => "error of ω: |Δω| (rad/s)".into(),
         "friction_angle" => "error of the friction angle: |Δ| (deg)".into(),
         other => format!("error of {other}: |Δ|"),
     }
