@@ -191,7 +191,7 @@ pub fn frame_interval(rows: &[FrameRow]) -> Result<f64, StageError> {
 
 /// An initial velocity field: a translation, or a rigid motion `v + ω × (x − c)` about the
 /// centre of mass `c`.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct RigidVelocity {
     /// Linear velocity of the centre of mass (m/s).
     pub linear: [f64; 3],

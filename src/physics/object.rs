@@ -233,14 +233,9 @@ impl Object {
                 .map(|sp| sp.filtered(s.splat_filter))
             })
             .collect();
-        let at_rest = crate::physics::fit::RigidVelocity {
-            linear: [0.0; 3],
-            angular: [0.0; 3],
-            centre: [0.0; 3],
-        };
         let text = sim_yaml(
             &s.material,
-            &at_rest,
+            &crate::physics::fit::RigidVelocity::default(),
             s.scene,
             s.frame_dt,
             dx,

@@ -281,9 +281,7 @@ pub fn run_with(
     }
     let setup = body.setup.clone();
     let carriers = body.n_input;
-    let body_spin_centre = spec
-        .spin_centre
-        .unwrap_or_else(|| body.centre_of_mass().to_array());
+    let body_spin_centre = body.spin_centre.to_array();
     let job = Job {
         spec: &spec,
         body,
@@ -381,6 +379,9 @@ pub struct Body {
     /// How the input points ride the first `n_input` particles (identity unless
     /// `merge_splats` merged them).
     pub skin: skin::Skin,
+    /// The point the initial spin turns about (m): the file's `spin_centre`, or the centre
+    /// of mass.
+    pub spin_centre: DVec3,
 }
 
 impl Body {
@@ -426,14 +427,16 @@ impl Body {
             material,
             n_input: n,
             skin,
+            spin_centre: DVec3::ZERO,
         };
-        let (v0, w) = (
-            DVec3::from_array(spec.initial_velocity),
-            DVec3::from_array(spec.angular_velocity),
-        );
-        let c = spec
+        body.spin_centre = spec
             .spin_centre
             .map_or_else(|| body.centre_of_mass(), DVec3::from_array);
+        let (v0, w, c) = (
+            DVec3::from_array(spec.initial_velocity),
+            DVec3::from_array(spec.angular_velocity),
+            body.spin_centre,
+        );
         // The rigid motion; APIC's affine velocity `C` starts at 0, as PAC-NeRF's, the stages'
         // and the generated scenes' (so a turning body spins slower than ω on a coarse grid:
         // `simulate::a_spinning_block_turns_about_its_centre_of_mass`).

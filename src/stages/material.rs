@@ -915,13 +915,9 @@ impl TypedStage for MaterialStage {
         };
         crate::io::write_json(&ctx.out_dir.join("material.json"), &out)
             .map_err(StageError::failed)?;
-        // The rigid part of the learned motion, about this body's centre of mass (as
-        // `VelocityResult::velocities` sets it); a velocity field's residual is not in the file.
-        let motion = crate::physics::fit::RigidVelocity {
-            linear: velocity.linear_velocity,
-            angular: velocity.angular_velocity,
-            centre: object.centre_of_mass().to_array(),
-        };
+        // The rigid part of the learned motion, as the rollouts start it; a velocity field's
+        // residual is not in the file.
+        let motion = velocity.rigid(&object);
         let residual_note = if velocity.model == crate::stages::velocity::VelocityModel::Field {
             "# The learned velocity field's residual is not in this file (particles.arrow has\n\
              # every particle's initial velocity): pipe simulate starts from its rigid part.\n"

@@ -223,6 +223,16 @@ pub struct VelocityFieldSummary {
 }
 
 impl VelocityResult {
+    /// The learned rigid motion about `object`'s own centre of mass (without a field's
+    /// residual).
+    pub fn rigid(&self, object: &crate::physics::object::Object) -> RigidVelocity {
+        RigidVelocity {
+            linear: self.linear_velocity,
+            angular: self.angular_velocity,
+            centre: object.centre_of_mass().to_array(),
+        }
+    }
+
     /// The initial velocity of every particle of `object` (m/s) as learned (about `object`'s
     /// own centre of mass), the field's residual included; `dir` is the `velocity` entry.
     ///
@@ -233,11 +243,7 @@ impl VelocityResult {
         object: &crate::physics::object::Object,
         dir: &std::path::Path,
     ) -> Result<Vec<DVec3>, StageError> {
-        let rigid = RigidVelocity {
-            linear: self.linear_velocity,
-            angular: self.angular_velocity,
-            centre: object.centre_of_mass().to_array(),
-        };
+        let rigid = self.rigid(object);
         let field = (self.model == VelocityModel::Field).then(|| dir.join(WEIGHTS_FILE));
         initial_velocities(object, &rigid, field.as_deref())
             .map_err(|e| StageError::failed(FitError::Invalid(e)))
