@@ -134,14 +134,19 @@ impl LineSearch {
         self.inverse_hessian = next;
     }
 
-    /// One iteration from `u` (loss `l0`, gradient `g`), evaluating trial losses with `loss`
-    /// (which may fail: the error stops the descent).
+    /// One iteration from `u` (loss `l0`, gradient `g`), evaluating trial losses with
+    /// `loss(at, bound)` (which may fail: the error stops the descent). `bound` is the value
+    /// above which the trial is rejected whatever it is: an evaluator may stop early and return
+    /// any value above it (a partial sum of non-negative frame losses, [`Wants::LossUpTo`]);
+    /// the search takes the same steps as with exact losses.
+    ///
+    /// [`Wants::LossUpTo`]: super::rollout::Wants::LossUpTo
     pub fn iterate<E>(
         &mut self,
         u: &[f64],
         l0: f64,
         g: &[f64],
-        mut loss: impl FnMut(&[f64]) -> Result<f64, E>,
+        mut loss: impl FnMut(&[f64], f64) -> Result<f64, E>,
     ) -> Result<Iteration, E> {
         let n = u.len();
         let stay = |trials| Iteration {
@@ -223,7 +228,7 @@ impl LineSearch {
         mut t: f64,
         min_step: f64,
         trials: &mut usize,
-        loss: &mut impl FnMut(&[f64]) -> Result<f64, E>,
+        loss: &mut impl FnMut(&[f64], f64) -> Result<f64, E>,
     ) -> Result<Search, E> {
         let largest = max_abs(d);
         let slope = dot(g, d);
@@ -233,9 +238,10 @@ impl LineSearch {
                 return Ok(Search::TooShort(moved));
             }
             let at: Vec<f64> = u.iter().zip(d).map(|(u, d)| u + t * d).collect();
-            let l = loss(&at)?;
+            let armijo = l0 + ARMIJO * t * slope;
+            let l = loss(&at, armijo)?;
             *trials += 1;
-            if l.is_finite() && l <= l0 + ARMIJO * t * slope {
+            if l.is_finite() && l <= armijo {
                 return Ok(Search::Accepted(Iteration {
                     u: at,
                     loss: l,
@@ -256,14 +262,15 @@ impl LineSearch {
 /// loss no longer depends on it) the descent stops although a decade away the loss is lower.
 /// On each axis the step down comes first and the step up only when it did not lower the loss.
 /// Returns the lowest probe and its loss, when that loss is below `l0` by more than `rel` of
-/// it, and the count of losses evaluated.
+/// it, and the count of losses evaluated. `loss(at, bound)` as [`LineSearch::iterate`]'s:
+/// a probe above `(1 − rel) l0` is rejected whatever its value.
 pub fn probe<E>(
     u: &[f64],
     l0: f64,
     axes: &[usize],
     step: f64,
     rel: f64,
-    mut loss: impl FnMut(&[f64]) -> Result<f64, E>,
+    mut loss: impl FnMut(&[f64], f64) -> Result<f64, E>,
 ) -> Result<Probe, E> {
     let mut best: Option<(Vec<f64>, f64)> = None;
     let mut evaluated = 0;
@@ -272,7 +279,8 @@ pub fn probe<E>(
         for sign in [-1.0, 1.0] {
             let mut at = u.to_vec();
             at[k] += sign * step;
-            let l = loss(&at)?;
+            // Above `enough` a probe neither wins nor ends the axis.
+            let l = loss(&at, enough)?;
             evaluated += 1;
             let lowest = best.as_ref().map_or(enough, |(_, b)| *b);
             if l.is_finite() && l < lowest {
@@ -319,7 +327,7 @@ mod tests {
         let mut iterations = 0;
         while !ls.converged() && iterations < 200 {
             let it = ls
-                .iterate(&u, l, &grad(&u), |x| Ok::<f64, ()>(f(x)))
+                .iterate(&u, l, &grad(&u), |x, _| Ok::<f64, ()>(f(x)))
                 .unwrap();
             assert!(it.loss <= l, "the loss never rises");
             (u, l) = (it.u, it.loss);
@@ -332,7 +340,7 @@ mod tests {
         let (mut u, mut l) = (vec![-1.0, 0.0], f(&[-1.0, 0.0]));
         for _ in 0..3 {
             let it = ls
-                .iterate(&u, l, &grad(&u), |x| Ok::<f64, ()>(f(x)))
+                .iterate(&u, l, &grad(&u), |x, _| Ok::<f64, ()>(f(x)))
                 .unwrap();
             (u, l) = (it.u, it.loss);
         }
@@ -353,7 +361,7 @@ mod tests {
                 break;
             }
             let it = ls
-                .iterate(&u, l, &grad(&u), |x| {
+                .iterate(&u, l, &grad(&u), |x, _| {
                     evaluations += 1;
                     Ok::<f64, ()>(f(x))
                 })
@@ -411,7 +419,9 @@ mod tests {
         let mut ls = LineSearch::new(0.5, 1e-4, 20.0);
         ls.inverse_hessian = vec![1.0, 0.0, 0.0, 1.0];
         let u = vec![1.0, 0.0];
-        let it = ls.iterate(&u, f(&u), &g, |x| Ok::<f64, ()>(f(x))).unwrap();
+        let it = ls
+            .iterate(&u, f(&u), &g, |x, _| Ok::<f64, ()>(f(x)))
+            .unwrap();
         assert!(it.loss < f(&u) / 2.0, "{it:?}");
         assert_eq!(it.trials, TRIALS + 1, "{it:?}");
         assert!(
@@ -429,7 +439,7 @@ mod tests {
         let Probe {
             best: none,
             evaluated: n,
-        } = probe(&[2.5, 0.5], f(&[2.5, 0.5]), &[0, 1], 1.0, 1e-3, |x| {
+        } = probe(&[2.5, 0.5], f(&[2.5, 0.5]), &[0, 1], 1.0, 1e-3, |x, _| {
             Ok::<f64, ()>(f(x))
         })
         .unwrap();
@@ -438,7 +448,7 @@ mod tests {
         let Probe {
             best: some,
             evaluated: n,
-        } = probe(&[1.5, 0.5], f(&[1.5, 0.5]), &[0], 1.0, 1e-3, |x| {
+        } = probe(&[1.5, 0.5], f(&[1.5, 0.5]), &[0], 1.0, 1e-3, |x, _| {
             Ok::<f64, ()>(f(x))
         })
         .unwrap();
@@ -453,9 +463,60 @@ mod tests {
         let Probe {
             best: nan,
             evaluated: n,
-        } = probe(&[0.0], 1.0, &[0, 3], 1.0, 0.0, |_| Ok::<f64, ()>(f64::NAN)).unwrap();
+        } = probe(&[0.0], 1.0, &[0, 3], 1.0, 0.0, |_, _| {
+            Ok::<f64, ()>(f64::NAN)
+        })
+        .unwrap();
         assert!(nan.is_none());
         assert_eq!(n, 2);
+    }
+
+    #[test]
+    fn a_trial_cut_short_above_its_bound_changes_no_step() {
+        // An evaluator that stops as soon as the loss is known to exceed the bound (it returns
+        // a value just above it, as a partial sum of frame losses would) against the exact
+        // one: the same points, losses and trial counts, iteration after iteration, probes
+        // included.
+        let f = |u: &[f64]| (u[0].min(1.5) - 0.3).powi(2) + 3.0 * (u[1] + 0.2).powi(2);
+        let grad = |u: &[f64]| {
+            let a = if u[0] < 1.5 { 2.0 * (u[0] - 0.3) } else { 0.0 };
+            vec![a, 6.0 * (u[1] + 0.2)]
+        };
+        let cut = |x: &[f64], bound: f64| {
+            let l = f(x);
+            Ok::<f64, ()>(if l > bound { bound.next_up() } else { l })
+        };
+        let (mut exact, mut short) = (
+            LineSearch::new(0.5, 1e-4, 1.0),
+            LineSearch::new(0.5, 1e-4, 1.0),
+        );
+        let (mut u, mut l) = (vec![2.2, 1.0], f(&[2.2, 1.0]));
+        let mut probed = 0;
+        for _ in 0..25 {
+            let a = exact
+                .iterate(&u, l, &grad(&u), |x, _| Ok::<f64, ()>(f(x)))
+                .unwrap();
+            let b = short.iterate(&u, l, &grad(&u), cut).unwrap();
+            assert_eq!(a, b);
+            assert_eq!(exact, short);
+            (u, l) = (a.u, a.loss);
+            if a.step == 0.0 {
+                let pa = probe(&u, l, &[0, 1], 1.0, 1e-3, |x, _| Ok::<f64, ()>(f(x))).unwrap();
+                let pb = probe(&u, l, &[0, 1], 1.0, 1e-3, cut).unwrap();
+                assert_eq!(pa, pb);
+                if let Some((at, lp)) = pa.best {
+                    (u, l) = (at, lp);
+                    probed += 1;
+                    exact = LineSearch::new(0.5, 1e-4, 1.0);
+                    short = exact.clone();
+                }
+            }
+        }
+        assert_eq!(probed, 1, "the plateau is left by one probe");
+        assert!(
+            (u[0] - 0.3).abs() < 1e-3 && (u[1] + 0.2).abs() < 1e-3,
+            "{u:?}"
+        );
     }
 
     #[test]
@@ -466,7 +527,7 @@ mod tests {
         let mut u = vec![1.0, 1.0];
         for _ in 0..2 {
             u = ls
-                .iterate(&u, f(&u), &grad(&u), |x| Ok::<f64, ()>(f(x)))
+                .iterate(&u, f(&u), &grad(&u), |x, _| Ok::<f64, ()>(f(x)))
                 .unwrap()
                 .u;
         }

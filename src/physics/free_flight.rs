@@ -1,14 +1,16 @@
 //! A rigid body in free flight, in closed form: frame `k` (time `t = k·Δt`) puts particle `p`
-//! at `x_p(t) = c + v t + ½ g t² + R(t) (X_p − c)` with `R(t) = exp([ω t]×)` and deformation
-//! gradient `F_p = R(t)` (a fluid keeps `F = I`: its splats do not turn), `c` the centre of
-//! mass. This is what an MPM rollout of a body that touches nothing computes with many
-//! substeps (the body stays rigid; its centre follows gravity); the `velocity` stage uses it
-//! for the frames the hulls show in free flight, at the cost of rendering them.
+//! at `x_p(t) = c + v t + ½ g t² + R(t) (X_p − c)` with deformation gradient `F_p = R(t)` (a
+//! fluid keeps `F = I`: its splats do not turn), `c` the centre of mass, and `R(t)` the
+//! torque-free rotation from the initial spin `ω` ([`super::torque_free`]: Euler's equations,
+//! with the inertia the MPM turns the body with, `I + (M Δx²/2) 𝟙`; a constant `exp([ω t]×)`
+//! holds only about a principal axis, and the simulator's spin is slower than `ω` by APIC's
+//! affine inertia). This is what an MPM rollout of a body that touches nothing computes with
+//! many substeps (the body stays rigid; its centre follows gravity); the `velocity` stage uses
+//! it for the frames the hulls show in free flight, at the cost of rendering them.
 //!
-//! The gradient (`∂L/∂v`, `∂L/∂ω`) goes through the exponential map's right Jacobian
-//! `J_r(θ) = I − (1 − cos|θ|)/|θ|² [θ]× + (|θ| − sin|θ|)/|θ|³ [θ]×²` (`dR = R [J_r dθ]×`):
-//! `∂(R r)/∂θ = −R [r]× J_r`, and `∂L/∂θ = J_rᵀ w` for `∂L/∂F = G`, `w` the axial vector of
-//! `RᵀG − GᵀR`.
+//! The gradient (`∂L/∂v`, `∂L/∂ω`): `∂L/∂θ = w` for a turn `dR = R [dθ]×`, with
+//! `∂(R r)/∂θ = −R [r]×` for the positions and `w` the axial vector of `RᵀG − GᵀR` for
+//! `∂L/∂F = G`; then `∂L/∂ω = (∂θ/∂ω)ᵀ ∂L/∂θ` ([`super::torque_free::Orientation::jacobian`]).
 
 use glam::{DMat3, DVec3};
 use pipe_mpm::{State, StateGrad};
@@ -16,63 +18,46 @@ use pipe_mpm::{State, StateGrad};
 use super::fit::RigidVelocity;
 use super::object::Object;
 use super::rollout::{FrameLoss, RolloutError};
+use super::torque_free::{FreeRotation, Orientation};
 use crate::simulate::spec::BoundarySpec;
 
-/// `[u]×`, the cross-product matrix (`[u]× r = u × r`).
-fn skew(u: DVec3) -> DMat3 {
-    DMat3::from_cols(
-        DVec3::new(0.0, u.z, -u.y),
-        DVec3::new(-u.z, 0.0, u.x),
-        DVec3::new(u.y, -u.x, 0.0),
-    )
-}
-
-/// `exp([θ]×)` (Rodrigues) and its right Jacobian `J_r(θ)`.
-fn exp_and_jacobian(theta: DVec3) -> (DMat3, DMat3) {
-    let a = theta.length();
-    let k = skew(theta);
-    let k2 = k * k;
-    // Series below 1e-4 rad (relative error of the truncated terms < 1e-16).
-    let (s, c, j1, j2) = if a < 1e-4 {
-        let a2 = a * a;
-        (
-            1.0 - a2 / 6.0,
-            0.5 - a2 / 24.0,
-            0.5 - a2 / 24.0,
-            1.0 / 6.0 - a2 / 120.0,
-        )
-    } else {
-        let a2 = a * a;
-        (
-            a.sin() / a,
-            (1.0 - a.cos()) / a2,
-            (1.0 - a.cos()) / a2,
-            (a - a.sin()) / (a2 * a),
-        )
-    };
-    let r = DMat3::IDENTITY + k * s + k2 * c;
-    let jr = DMat3::IDENTITY - k * j1 + k2 * j2;
-    (r, jr)
-}
-
-/// Frame `frame` of `rigid`'s free flight: its time `t` (s), `R(t)`, `J_r(ω t)` and the
-/// centre's position `c + v t + ½ g t²` (m).
-fn pose_at(object: &Object, rigid: &RigidVelocity, frame: u16) -> (f64, DMat3, DMat3, DVec3) {
-    let (v, w, c) = (
-        DVec3::from_array(rigid.linear),
-        DVec3::from_array(rigid.angular),
+/// The rotation of `rigid`'s body in free flight at frames `0..=frames` (with `∂θ/∂ω` when
+/// `jacobian`), as the simulation on `object`'s grid turns it.
+fn orientations(
+    object: &Object,
+    rigid: &RigidVelocity,
+    frames: u16,
+    jacobian: bool,
+) -> Vec<Orientation> {
+    let body = FreeRotation::of_simulated(
+        &object.body.state.x,
+        &object.body.material.mass,
         DVec3::from_array(rigid.centre),
+        object.body.setup.dx,
     );
-    let t = f64::from(frame) * object.spec.frame_dt;
-    let (r, jr) = exp_and_jacobian(w * t);
-    let shift = c + v * t + 0.5 * DVec3::from_array(object.spec.gravity) * t * t;
-    (t, r, jr, shift)
+    let times: Vec<f64> = (0..=frames)
+        .map(|k| f64::from(k) * object.spec.frame_dt)
+        .collect();
+    body.orientations(DVec3::from_array(rigid.angular), &times, jacobian)
+}
+
+/// The centre's position `c + v t + ½ g t²` (m) at time `t` (s).
+fn centre_at(object: &Object, rigid: &RigidVelocity, t: f64) -> DVec3 {
+    DVec3::from_array(rigid.centre)
+        + DVec3::from_array(rigid.linear) * t
+        + 0.5 * DVec3::from_array(object.spec.gravity) * t * t
 }
 
 /// The particles of `object` at frame `frame` of `rigid`'s free flight (m).
 pub fn positions(object: &Object, rigid: &RigidVelocity, frame: u16) -> Vec<DVec3> {
-    let (_, r, _, shift) = pose_at(object, rigid, frame);
-    placed(object, DVec3::from_array(rigid.centre), r, shift)
+    let r = orientations(object, rigid, frame, false)[usize::from(frame)].r;
+    let t = f64::from(frame) * object.spec.frame_dt;
+    placed(
+        object,
+        DVec3::from_array(rigid.centre),
+        r,
+        centre_at(object, rigid, t),
+    )
 }
 
 /// The rest particles turned by `r` about `centre` and moved to `shift` (m).
@@ -111,17 +96,22 @@ pub fn touches_nothing(object: &Object, rigid: &RigidVelocity, frames: u16) -> b
         .domain
         .as_ref()
         .map(|d| (DVec3::from_array(d.min), DVec3::from_array(d.max)));
-    (0..=frames).all(|frame| {
-        positions(object, rigid, frame).iter().all(|x| {
-            planes.iter().all(|(p, n)| (*x - *p).dot(*n) > margin)
-                && boxes.iter().all(|(lo, hi)| {
-                    let outside = (*lo - *x).max(*x - *hi).max(DVec3::ZERO);
-                    outside.length() > margin
-                })
-                && domain.is_none_or(|(lo, hi)| {
-                    (*x - lo).min_element() > margin && (hi - *x).min_element() > margin
-                })
-        })
+    let path = orientations(object, rigid, frames, false);
+    let c = DVec3::from_array(rigid.centre);
+    path.iter().enumerate().all(|(frame, o)| {
+        let t = frame as f64 * object.spec.frame_dt;
+        placed(object, c, o.r, centre_at(object, rigid, t))
+            .iter()
+            .all(|x| {
+                planes.iter().all(|(p, n)| (*x - *p).dot(*n) > margin)
+                    && boxes.iter().all(|(lo, hi)| {
+                        let outside = (*lo - *x).max(*x - *hi).max(DVec3::ZERO);
+                        outside.length() > margin
+                    })
+                    && domain.is_none_or(|(lo, hi)| {
+                        (*x - lo).min_element() > margin && (hi - *x).min_element() > margin
+                    })
+            })
     })
 }
 
@@ -138,22 +128,23 @@ pub fn run(
     loss: &mut dyn FrameLoss,
     gradient: bool,
 ) -> Result<(f64, Option<(DVec3, DVec3)>), RolloutError> {
-    let (v, w, c) = (
+    let (v, c) = (
         DVec3::from_array(rigid.linear),
-        DVec3::from_array(rigid.angular),
         DVec3::from_array(rigid.centre),
     );
     let g = DVec3::from_array(object.spec.gravity);
     let rest = &object.body.state.x;
     let n = rest.len();
+    let path = orientations(object, rigid, frames, gradient);
     let (mut total, mut gv, mut gw) = (0.0, DVec3::ZERO, DVec3::ZERO);
     for frame in 1..=frames {
-        let (t, r, jr, shift) = pose_at(object, rigid, frame);
+        let o = path[usize::from(frame)];
+        let (r, t) = (o.r, f64::from(frame) * object.spec.frame_dt);
+        let shift = centre_at(object, rigid, t);
         let mut state = State::at_rest(placed(object, c, r, shift));
-        // The world angular velocity of exp([ω t]×) is ω itself.
         let speed = v + g * t;
         for (p, x) in state.v.iter_mut().zip(&state.x) {
-            *p = speed + w.cross(*x - shift);
+            *p = speed + o.omega.cross(*x - shift);
         }
         if !fluid {
             state.f.iter_mut().for_each(|f| *f = r);
@@ -164,7 +155,7 @@ pub fn run(
         }
         let mut sg = StateGrad::zeros(n);
         total += loss.frame(frame, &state, Some(&mut sg))?;
-        // ∂L/∂θ from the positions and the deformation gradients, θ = ω t.
+        // ∂L/∂θ from the positions and the deformation gradients.
         let mut g_theta = DVec3::ZERO;
         for (x, gx) in rest.iter().zip(&sg.x) {
             gv += *gx * t;
@@ -180,36 +171,7 @@ pub fn run(
                 m.x_axis.y - m.y_axis.x,
             );
         }
-        gw += jr.transpose() * g_theta * t;
+        gw += o.jacobian.transpose() * g_theta;
     }
     Ok((total, gradient.then_some((gv, gw))))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn the_exponential_map_and_its_jacobian_match_finite_differences() {
-        for theta in [
-            DVec3::new(0.3, -1.2, 0.7),
-            DVec3::new(2e-5, 1e-5, -3e-5),
-            DVec3::ZERO,
-        ] {
-            let (r, jr) = exp_and_jacobian(theta);
-            assert!((r.transpose() * r - DMat3::IDENTITY).abs_diff_eq(DMat3::ZERO, 1e-14));
-            assert!((r.determinant() - 1.0).abs() < 1e-14);
-            // dR = R [J_r dθ]×, column k of J_r by central differences.
-            let h = 1e-6;
-            for k in 0..3 {
-                let e = DVec3::AXES[k] * h;
-                let d = (exp_and_jacobian(theta + e).0 - exp_and_jacobian(theta - e).0) * (0.5 / h);
-                let want = r * skew(jr.col(k));
-                assert!(
-                    (d - want).abs_diff_eq(DMat3::ZERO, 1e-8),
-                    "θ {theta}, column {k}: {d} against {want}"
-                );
-            }
-        }
-    }
 }

@@ -18,6 +18,7 @@ pub mod particles;
 pub mod pose;
 pub mod rollout;
 pub mod step_search;
+pub mod torque_free;
 pub mod track;
 pub mod velocity_field;
 pub mod views;

@@ -79,13 +79,24 @@ pub trait FrameLoss {
         state: &State,
         grad: Option<&mut StateGrad>,
     ) -> Result<f64, RolloutError>;
+
+    /// Whether every frame's loss is ≥ 0 (up to rounding), so that a partial sum bounds the
+    /// whole from below and [`Wants::LossUpTo`] may stop early. Default: no.
+    fn non_negative(&self) -> bool {
+        false
+    }
 }
 
 /// What a rollout is asked for.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Wants {
     /// The losses only (a plain forward run).
     Loss,
+    /// The losses only, stopping after the frame at which their sum exceeds the bound (when
+    /// the loss is [`FrameLoss::non_negative`]): a trial that a search rejects above the bound
+    /// needs no more frames, since the later frames cannot lower the sum. The outcome is then
+    /// [`Outcome::cut_short`] and its loss the partial sum, above the bound.
+    LossUpTo(f64),
     /// The losses and the material's gradient.
     Material(Truncate),
     /// The losses, the material's gradient and `∂L/∂v0` per particle (through every frame).
@@ -108,8 +119,11 @@ pub struct Outcome {
     /// With per-particle [`Moduli`]: `∂L/∂E_p` (per Pa) and `∂L/∂ν_p` per particle (the
     /// material gradient's `E` and `ν` are then their sums).
     pub moduli: Option<Moduli>,
-    /// The state at the end of the last frame.
+    /// The state at the end of the last frame simulated.
     pub last: State,
+    /// Whether a [`Wants::LossUpTo`] rollout stopped before its last frame (its loss is then
+    /// a lower bound of the whole rollout's, above the bound).
+    pub cut_short: bool,
 }
 
 impl Outcome {
@@ -320,7 +334,12 @@ impl ModelVisitor for Visit<'_, '_> {
         let mut substeps = Vec::new();
         // Truncate::None and Wants::Velocity: every frame's tape, substeps and seed.
         let mut kept: Vec<(pipe_mpm::Tape, usize, StateGrad)> = Vec::new();
-        let grads = !matches!(wants, Wants::Loss);
+        let grads = !matches!(wants, Wants::Loss | Wants::LossUpTo(_));
+        let bound = match wants {
+            Wants::LossUpTo(b) if loss.non_negative() => Some(b),
+            _ => None,
+        };
+        let mut cut_short = false;
         let keep_all = matches!(wants, Wants::Velocity | Wants::Material(Truncate::None));
         for frame in 1..=r.frames {
             if r.interrupt
@@ -348,6 +367,10 @@ impl ModelVisitor for Visit<'_, '_> {
             if !grads {
                 sim.run(&mut state, &mat, t0, n).map_err(sim_err(frame))?;
                 frame_loss.push(loss.frame(frame, &state, None)?);
+                if bound.is_some_and(|b| frame < r.frames && frame_loss.iter().sum::<f64>() > b) {
+                    cut_short = true;
+                    break;
+                }
                 continue;
             }
             let tape = sim
@@ -432,6 +455,7 @@ impl ModelVisitor for Visit<'_, '_> {
             },
             moduli: if grads { per_particle } else { None },
             last: state,
+            cut_short,
         })
     }
 }

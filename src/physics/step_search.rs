@@ -26,7 +26,8 @@ impl Default for StepSearch {
 impl StepSearch {
     /// Tries `t = scale, scale/2, …` ([`TRIALS`] of them) through `loss_at(t)` (the loss with
     /// the step scaled by `t`; `None` when that step cannot be evaluated) and returns the first
-    /// `(t, loss)` below `loss0`, or `None`.
+    /// `(t, loss)` below `loss0`, or `None`. A trial is rejected whatever its loss above
+    /// `loss0`: `loss_at` may stop early and return any value at or above it.
     ///
     /// # Errors
     /// The first error of `loss_at`.

@@ -76,6 +76,11 @@ impl<'a> ViewsLoss<'a> {
 }
 
 impl FrameLoss for ViewsLoss<'_> {
+    /// `λ·L1 + (1 − λ)·(1 − SSIM)` and `mean|α − mask|` are each ≥ 0.
+    fn non_negative(&self) -> bool {
+        true
+    }
+
     fn frame(
         &mut self,
         frame: u16,

@@ -258,7 +258,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 13;
+    const VERSION: u32 = 14;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 
@@ -515,6 +515,11 @@ impl TypedStage for MaterialStage {
             let mut taken = None;
             let mut full_gradient = false;
             let mut probes = 0;
+            let mean_psnr = |loss: &ViewsLoss<'_>| {
+                loss.psnr.values().sum::<f64>() / loss.psnr.len().max(1) as f64
+            };
+            // The training PSNR at the epoch's start (the trials after it render other points).
+            let mut start_psnr = None;
             let out = match (p.optimizer, p.truncate) {
                 (Optimizer::LineSearch, truncate) => {
                     let gradient_of = |out: &crate::physics::rollout::Outcome| {
@@ -531,19 +536,21 @@ impl TypedStage for MaterialStage {
                     let out = rollout
                         .run(&mut loss, Wants::Material(truncate))
                         .map_err(|e| fail(epoch, e))?;
+                    start_psnr = Some(mean_psnr(&loss));
                     let g = gradient_of(&out)?;
-                    let trial_loss = |trial: &[f64], loss: &mut ViewsLoss<'_>| {
+                    // A trial above `up_to` is rejected whatever it is: its rollout stops there.
+                    let trial_loss = |trial: &[f64], up_to: f64, loss: &mut ViewsLoss<'_>| {
                         let v = values_of(trial);
                         Rollout {
                             material: &v,
                             ..rollout
                         }
-                        .run(loss, Wants::Loss)
+                        .run(loss, Wants::LossUpTo(up_to))
                         .map(|o| o.loss())
                     };
                     let before = search.clone();
                     let mut it = search
-                        .iterate(&u, out.loss(), &g, |t| trial_loss(t, &mut loss))
+                        .iterate(&u, out.loss(), &g, |t, up_to| trial_loss(t, up_to, &mut loss))
                         .map_err(|e| fail(epoch, e))?;
                     if it.step == 0.0 && truncate == Truncate::Frame {
                         // The truncated gradient is not the loss's own: when no step along it
@@ -557,7 +564,7 @@ impl TypedStage for MaterialStage {
                         let g = gradient_of(&full)?;
                         search = before;
                         it = search
-                            .iterate(&u, full.loss(), &g, |t| trial_loss(t, &mut loss))
+                            .iterate(&u, full.loss(), &g, |t, up_to| trial_loss(t, up_to, &mut loss))
                             .map_err(|e| fail(epoch, e))?;
                         full_gradient = true;
                     }
@@ -576,7 +583,7 @@ impl TypedStage for MaterialStage {
                                 &axes,
                                 size,
                                 PROBE_GAIN,
-                                |t| trial_loss(t, &mut loss),
+                                |t, up_to| trial_loss(t, up_to, &mut loss),
                             )
                             .map_err(|e| fail(epoch, e))?;
                             probes += evaluated;
@@ -633,7 +640,7 @@ impl TypedStage for MaterialStage {
             }
             .map_err(|e| fail(epoch, e))?;
             let l = out.loss();
-            let psnr = loss.psnr.values().sum::<f64>() / loss.psnr.len().max(1) as f64;
+            let psnr = start_psnr.unwrap_or_else(|| mean_psnr(&loss));
             // The values at the end of the epoch.
             let now = values_of(&u);
             let mut metric = |name: &str, value: f64| {

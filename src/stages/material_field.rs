@@ -242,7 +242,9 @@ pub(crate) fn fit(
                         .ok()
                         .map(|m| (trial_u, trial_values, m)))
                 };
-            let found = search.run(out.loss(), |t| {
+            // A trial above the loss so far is rejected whatever it is (`StepSearch::run`).
+            let loss0 = out.loss();
+            let found = search.run(loss0, |t| {
                 let Some((_, trial_values, trial_moduli)) = at(t)? else {
                     return Ok(None);
                 };
@@ -255,7 +257,7 @@ pub(crate) fn fit(
                     interrupt: Some(interrupt),
                     moduli: Some(&trial_moduli),
                 })
-                .run(loss, Wants::Loss)
+                .run(loss, Wants::LossUpTo(loss0))
                 {
                     Ok(o) => Ok(Some(o.loss())),
                     Err(RolloutError::Interrupted) => Err(StageError::Interrupted),

@@ -253,7 +253,7 @@ impl VelocityResult {
 impl TypedStage for Velocity {
     type Params = VelocityParams;
     const KIND: &'static str = "velocity";
-    const VERSION: u32 = 10;
+    const VERSION: u32 = 11;
     const DESCRIPTION: &'static str = "Learn the initial velocity from the first frames (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup"];
 
@@ -455,14 +455,24 @@ impl TypedStage for Velocity {
             }
         };
         // The loss of a rigid motion: in closed form in free flight, else simulated.
-        let rigid_loss = |x: &[f64], loss: &mut ViewsLoss<'_>| -> Result<f64, RolloutError> {
-            if closed {
-                free_flight::run(&object, &rigid(x), last, fluid, loss, false).map(|(l, _)| l)
-            } else {
-                let v0 = rigid(x).field(&object);
-                run_loss(&object, &material, &v0, last, precision, interrupt, loss)
-            }
-        };
+        let rigid_loss =
+            |x: &[f64], up_to: f64, loss: &mut ViewsLoss<'_>| -> Result<f64, RolloutError> {
+                if closed {
+                    free_flight::run(&object, &rigid(x), last, fluid, loss, false).map(|(l, _)| l)
+                } else {
+                    let v0 = rigid(x).field(&object);
+                    run_loss(
+                        &object,
+                        &material,
+                        &v0,
+                        last,
+                        precision,
+                        interrupt,
+                        loss,
+                        Some(up_to),
+                    )
+                }
+            };
         ctx.progress.start("epoch", u64::from(p.epochs));
         ctx.progress.inc(u64::from(first_epoch));
         // The loss after each epoch's step: three epochs that gain less than 0.1 % end the fit.
@@ -521,7 +531,9 @@ impl TypedStage for Velocity {
                 metric(name, field.angular[k]);
             }
             let it = search
-                .iterate(&x, l, &grad, |trial| rigid_loss(trial, &mut loss))
+                .iterate(&x, l, &grad, |trial, up_to| {
+                    rigid_loss(trial, up_to, &mut loss)
+                })
                 .map_err(|e| fail(epoch, e))?;
             metric("step", it.step);
             metric("trials", it.trials as f64);
@@ -552,7 +564,7 @@ impl TypedStage for Velocity {
         }
         // The loss at the start and at the learned velocity.
         let eval = |x: &[f64], loss: &mut ViewsLoss<'_>| -> Result<f64, StageError> {
-            rigid_loss(x, loss).map_err(|e| fail(p.epochs, e))
+            rigid_loss(x, f64::INFINITY, loss).map_err(|e| fail(p.epochs, e))
         };
         let loss_start = eval(&start, &mut loss)?;
         let loss_rigid = eval(&x, &mut loss)?;
@@ -609,6 +621,7 @@ impl TypedStage for Velocity {
                     precision,
                     interrupt,
                     &mut held_loss,
+                    None,
                 )
                 .map_err(|e| fail(p.epochs, e))?;
                 let lf = run_loss(
@@ -619,6 +632,7 @@ impl TypedStage for Velocity {
                     precision,
                     interrupt,
                     &mut held_loss,
+                    None,
                 )
                 .map_err(|e| fail(p.epochs, e))?;
                 let (wins, reason) = decide(lg, lf, p.auto.margin, "rigid motion");
@@ -662,7 +676,7 @@ impl TypedStage for Velocity {
             loss_rigid
         } else {
             run_loss(
-                &object, &material, &v0, last, precision, interrupt, &mut loss,
+                &object, &material, &v0, last, precision, interrupt, &mut loss, None,
             )
             .map_err(|e| fail(p.epochs, e))?
         };
@@ -731,7 +745,9 @@ struct Frozen<'a> {
     interrupt: &'a std::sync::atomic::AtomicBool,
 }
 
-/// The loss of initial velocities `v0` over frames `1..=last`.
+/// The loss of initial velocities `v0` over frames `1..=last`; with `up_to`, the rollout may
+/// stop once its loss exceeds it, returning a partial loss above it ([`Wants::LossUpTo`]).
+#[allow(clippy::too_many_arguments)]
 fn run_loss(
     object: &Object,
     material: &MaterialValues,
@@ -740,6 +756,7 @@ fn run_loss(
     precision: pipe_mpm::Precision,
     interrupt: &std::sync::atomic::AtomicBool,
     loss: &mut ViewsLoss<'_>,
+    up_to: Option<f64>,
 ) -> Result<f64, RolloutError> {
     Rollout {
         object,
@@ -750,7 +767,7 @@ fn run_loss(
         interrupt: Some(interrupt),
         moduli: None,
     }
-    .run(loss, Wants::Loss)
+    .run(loss, up_to.map_or(Wants::Loss, Wants::LossUpTo))
     .map(|o| o.loss())
 }
 
@@ -827,7 +844,9 @@ fn fit_velocity_field(
         adam.step(&mut vf.field, &grad)
             .map_err(|e| training(epoch, e.to_string()))?;
         let stepped = vf.field.to_flat();
-        let found = search.run(out.loss(), |t| {
+        // A trial above the loss so far is rejected whatever it is (`StepSearch::run`).
+        let loss0 = out.loss();
+        let found = search.run(loss0, |t| {
             vf.field
                 .set_flat(&lerp(&before, &stepped, t))
                 .map_err(|e| training(epoch, e.to_string()))?;
@@ -842,6 +861,7 @@ fn fit_velocity_field(
                 fixed.precision,
                 fixed.interrupt,
                 loss,
+                Some(loss0),
             ) {
                 Ok(l) => Ok(Some(l)),
                 Err(RolloutError::Interrupted) => Err(StageError::Interrupted),
