@@ -163,6 +163,15 @@ impl FrameLoss for LinearLoss<'_> {
     }
 }
 
+/// An elastic material of Young's modulus `e` (Pa), ν 0.3, density 1000 kg/m³.
+fn elastic(e: f64) -> MaterialValues {
+    MaterialValues::guess(
+        MaterialFamily::Elastic,
+        1000.0,
+        &BTreeMap::from([(Param::E, e), (Param::Nu, 0.3)]),
+    )
+}
+
 fn object() -> Object {
     object_of(&block())
 }
@@ -173,11 +182,7 @@ fn object_of(gaussians: &Gaussians) -> Object {
 
 fn object_on(gaussians: &Gaussians, grid: Resolution) -> Result<Object, SimulateError> {
     let scene = scene();
-    let material = MaterialValues::guess(
-        MaterialFamily::Elastic,
-        1000.0,
-        &BTreeMap::from([(Param::E, 5e3), (Param::Nu, 0.3)]),
-    );
+    let material = elastic(5e3);
     let mut o = Object::build(
         gaussians,
         &ObjectSettings {
@@ -271,11 +276,7 @@ impl FrameLoss for SquaredLoss<'_> {
 #[test]
 fn a_trial_rollout_stops_once_its_loss_exceeds_the_bound() {
     let object = object();
-    let values = MaterialValues::guess(
-        MaterialFamily::Elastic,
-        1000.0,
-        &BTreeMap::from([(Param::E, 5e3), (Param::Nu, 0.3)]),
-    );
+    let values = elastic(5e3);
     let v0 = velocity(&object, DVec3::ZERO);
     let run = |wants: Wants| {
         let mut l = SquaredLoss(LinearLoss::new(&object));
@@ -442,11 +443,7 @@ fn gradients_through_gaussians_that_ride_one_particle_match_finite_differences()
 
 fn check_material_and_velocity_gradients(object: &Object) {
     let object = object.clone();
-    let values = MaterialValues::guess(
-        MaterialFamily::Elastic,
-        1000.0,
-        &BTreeMap::from([(Param::E, 5e3), (Param::Nu, 0.3)]),
-    );
+    let values = elastic(5e3);
     let v0 = velocity(&object, DVec3::ZERO);
     let frames = 2;
     let mut loss = LinearLoss::new(&object);
@@ -529,11 +526,7 @@ fn check_material_and_velocity_gradients(object: &Object) {
 fn per_particle_moduli_gradients_match_finite_differences() {
     let object = object();
     let n = object.particles();
-    let values = MaterialValues::guess(
-        MaterialFamily::Elastic,
-        1000.0,
-        &BTreeMap::from([(Param::E, 5e3), (Param::Nu, 0.3)]),
-    );
+    let values = elastic(5e3);
     let v0 = velocity(&object, DVec3::ZERO);
     // Two halves of different stiffness (split along x at the body's centre).
     let c = object.centre_of_mass();
@@ -633,11 +626,7 @@ fn per_particle_moduli_gradients_match_finite_differences() {
 fn material_field_gradients_match_finite_differences_through_render_and_mpm() {
     use pipe::physics::material_field::{FieldSettings, MaterialField};
     let object = object();
-    let values = MaterialValues::guess(
-        MaterialFamily::Elastic,
-        1000.0,
-        &BTreeMap::from([(Param::E, 5e3), (Param::Nu, 0.3)]),
-    );
+    let values = elastic(5e3);
     let v0 = velocity(&object, DVec3::ZERO);
     let settings = FieldSettings {
         resolution: 4,
@@ -712,11 +701,7 @@ fn velocity_field_gradients_match_finite_differences_through_render_and_mpm() {
         VelocityField, VelocityFieldSettings, initial_velocities, write_weights,
     };
     let object = object();
-    let values = MaterialValues::guess(
-        MaterialFamily::Elastic,
-        1000.0,
-        &BTreeMap::from([(Param::E, 5e3), (Param::Nu, 0.3)]),
-    );
+    let values = elastic(5e3);
     let rigid = RigidVelocity {
         linear: [0.1, -0.2, 0.05],
         angular: [0.0, 1.0, 0.5],
@@ -1190,11 +1175,7 @@ fn free_flight_in_closed_form_matches_finite_differences_and_the_simulation() {
     // spinning and not: symplectic Euler's substeps put a falling body ½·g·t·Δt lower than the
     // parabola (~1e-5 m here); the closed form turns the body with the inertia APIC's affine
     // velocities add (it spun 4 % of the travel off when it turned at ω itself).
-    let values = MaterialValues::guess(
-        MaterialFamily::Elastic,
-        1000.0,
-        &BTreeMap::from([(Param::E, 1e6), (Param::Nu, 0.3)]),
-    );
+    let values = elastic(1e6);
     let mut stiff = object.clone();
     stiff.spec.substeps = None;
     struct Last(Vec<DVec3>);
@@ -1292,11 +1273,7 @@ fn a_tumbling_bar_in_closed_form_follows_the_simulation() {
         centre: c.to_array(),
     };
     let frames = 10;
-    let values = MaterialValues::guess(
-        MaterialFamily::Elastic,
-        1000.0,
-        &BTreeMap::from([(Param::E, 3e6), (Param::Nu, 0.3)]),
-    );
+    let values = elastic(3e6);
     let mpm = run_rollout(
         &object,
         &values,
