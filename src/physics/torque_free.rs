@@ -79,7 +79,7 @@ impl FreeRotation {
             return times
                 .iter()
                 .map(|&t| Orientation {
-                    r: DMat3::from_axis_angle_or_identity(omega0 * t),
+                    r: exp_so3(omega0 * t),
                     omega: omega0,
                     jacobian: DMat3::ZERO,
                 })
@@ -116,11 +116,7 @@ impl FreeRotation {
                             a.z_axis.x - a.x_axis.z,
                             a.x_axis.y - a.y_axis.x,
                         );
-                    match k {
-                        0 => j.x_axis = col,
-                        1 => j.y_axis = col,
-                        _ => j.z_axis = col,
-                    }
+                    *j.col_mut(k) = col;
                 }
             }
         }
@@ -158,19 +154,13 @@ fn integrate(j_inv: DMat3, l: DVec3, intervals: &[(f64, usize)]) -> Vec<(DMat3, 
     out
 }
 
-trait AxisAngle {
-    fn from_axis_angle_or_identity(theta: DVec3) -> Self;
-}
-
-impl AxisAngle for DMat3 {
-    /// `exp([θ]×)`.
-    fn from_axis_angle_or_identity(theta: DVec3) -> Self {
-        let a = theta.length();
-        if a > 0.0 {
-            DMat3::from_axis_angle(theta / a, a)
-        } else {
-            DMat3::IDENTITY
-        }
+/// `exp([θ]×)`, the rotation by `|θ|` about `θ`.
+fn exp_so3(theta: DVec3) -> DMat3 {
+    let a = theta.length();
+    if a > 0.0 {
+        DMat3::from_axis_angle(theta / a, a)
+    } else {
+        DMat3::IDENTITY
     }
 }
 
@@ -259,12 +249,13 @@ mod tests {
             for i in 0..times.len() {
                 // dR ≈ R [J e_k]× dω
                 let d = (up[i].r - down[i].r) * (0.5 / h);
-                let want = path[i].r
-                    * DMat3::from_cols(
-                        DVec3::new(0.0, path[i].jacobian.col(k).z, -path[i].jacobian.col(k).y),
-                        DVec3::new(-path[i].jacobian.col(k).z, 0.0, path[i].jacobian.col(k).x),
-                        DVec3::new(path[i].jacobian.col(k).y, -path[i].jacobian.col(k).x, 0.0),
-                    );
+                let u = path[i].jacobian.col(k);
+                let skew = DMat3::from_cols(
+                    DVec3::new(0.0, u.z, -u.y),
+                    DVec3::new(-u.z, 0.0, u.x),
+                    DVec3::new(u.y, -u.x, 0.0),
+                );
+                let want = path[i].r * skew;
                 assert!(
                     (d - want).abs_diff_eq(DMat3::ZERO, 1e-6),
                     "ω₀ component {k}, t {}: {d} against {want}",

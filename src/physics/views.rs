@@ -73,6 +73,11 @@ impl<'a> ViewsLoss<'a> {
     pub fn frames(&self) -> impl Iterator<Item = u16> + '_ {
         self.by_frame.keys().copied()
     }
+
+    /// The mean over frames of [`Self::psnr`] (dB) at their last evaluation (0 before any).
+    pub fn mean_psnr(&self) -> f64 {
+        self.psnr.values().sum::<f64>() / self.psnr.len().max(1) as f64
+    }
 }
 
 impl FrameLoss for ViewsLoss<'_> {

@@ -515,9 +515,6 @@ impl TypedStage for MaterialStage {
             let mut taken = None;
             let mut full_gradient = false;
             let mut probes = 0;
-            let mean_psnr = |loss: &ViewsLoss<'_>| {
-                loss.psnr.values().sum::<f64>() / loss.psnr.len().max(1) as f64
-            };
             // The training PSNR at the epoch's start (the trials after it render other points).
             let mut start_psnr = None;
             let out = match (p.optimizer, p.truncate) {
@@ -536,7 +533,7 @@ impl TypedStage for MaterialStage {
                     let out = rollout
                         .run(&mut loss, Wants::Material(truncate))
                         .map_err(|e| fail(epoch, e))?;
-                    start_psnr = Some(mean_psnr(&loss));
+                    start_psnr = Some(loss.mean_psnr());
                     let g = gradient_of(&out)?;
                     // A trial above `up_to` is rejected whatever it is: its rollout stops there.
                     let trial_loss = |trial: &[f64], up_to: f64, loss: &mut ViewsLoss<'_>| {
@@ -640,7 +637,7 @@ impl TypedStage for MaterialStage {
             }
             .map_err(|e| fail(epoch, e))?;
             let l = out.loss();
-            let psnr = start_psnr.unwrap_or_else(|| mean_psnr(&loss));
+            let psnr = start_psnr.unwrap_or_else(|| loss.mean_psnr());
             // The values at the end of the epoch.
             let now = values_of(&u);
             let mut metric = |name: &str, value: f64| {
@@ -827,7 +824,7 @@ impl TypedStage for MaterialStage {
             None => None,
         };
         let final_out = eval(&result, moduli, &mut loss)?;
-        let psnr = loss.psnr.values().sum::<f64>() / loss.psnr.len().max(1) as f64;
+        let psnr = loss.mean_psnr();
         for (metric, value) in [
             ("loss_guess", loss_guess),
             ("loss_final", final_out.loss()),

@@ -445,6 +445,13 @@ impl TypedStage for Velocity {
             centre,
         };
         let precision = p.precision.mpm();
+        let sim = Simulated {
+            object: &object,
+            material: &material,
+            last,
+            precision,
+            interrupt,
+        };
         let fail = |epoch: u32, e: RolloutError| -> StageError {
             match e {
                 RolloutError::Interrupted => StageError::Interrupted,
@@ -460,17 +467,7 @@ impl TypedStage for Velocity {
                 if closed {
                     free_flight::run(&object, &rigid(x), last, fluid, loss, false).map(|(l, _)| l)
                 } else {
-                    let v0 = rigid(x).field(&object);
-                    run_loss(
-                        &object,
-                        &material,
-                        &v0,
-                        last,
-                        precision,
-                        interrupt,
-                        loss,
-                        Some(up_to),
-                    )
+                    sim.loss(&rigid(x).field(&object), loss, Some(up_to))
                 }
             };
         ctx.progress.start("epoch", u64::from(p.epochs));
@@ -484,15 +481,7 @@ impl TypedStage for Velocity {
             }
             let field = rigid(&x);
             let v0 = field.field(&object);
-            let rollout = Rollout {
-                object: &object,
-                material: &material,
-                v0: &v0,
-                frames: last,
-                precision,
-                interrupt: Some(interrupt),
-                moduli: None,
-            };
+            let rollout = sim.rollout(&v0);
             let (l, (gv, gw)) = if closed {
                 let (l, g) = free_flight::run(&object, &field, last, fluid, &mut loss, true)
                     .map_err(|e| fail(epoch, e))?;
@@ -575,12 +564,8 @@ impl TypedStage for Velocity {
                 p.epochs,
                 ctx,
                 &Frozen {
-                    object: &object,
-                    material: &material,
+                    sim,
                     base: field.field(&object),
-                    last,
-                    precision,
-                    interrupt,
                 },
                 loss,
             )
@@ -613,28 +598,12 @@ impl TypedStage for Velocity {
                 ));
                 let f = fit_field(ctx, &mut fit_loss)?;
                 // Both simulated, so the comparison is between the two motions only.
-                let lg = run_loss(
-                    &object,
-                    &material,
-                    &field.field(&object),
-                    last,
-                    precision,
-                    interrupt,
-                    &mut held_loss,
-                    None,
-                )
-                .map_err(|e| fail(p.epochs, e))?;
-                let lf = run_loss(
-                    &object,
-                    &material,
-                    &f.1,
-                    last,
-                    precision,
-                    interrupt,
-                    &mut held_loss,
-                    None,
-                )
-                .map_err(|e| fail(p.epochs, e))?;
+                let lg = sim
+                    .loss(&field.field(&object), &mut held_loss, None)
+                    .map_err(|e| fail(p.epochs, e))?;
+                let lf = sim
+                    .loss(&f.1, &mut held_loss, None)
+                    .map_err(|e| fail(p.epochs, e))?;
                 let (wins, reason) = decide(lg, lf, p.auto.margin, "rigid motion");
                 ctx.progress.log(&format!("velocity auto: {reason}"));
                 let selection = ModelSelection {
@@ -675,10 +644,8 @@ impl TypedStage for Velocity {
         let loss_final = if learned_field.is_none() {
             loss_rigid
         } else {
-            run_loss(
-                &object, &material, &v0, last, precision, interrupt, &mut loss, None,
-            )
-            .map_err(|e| fail(p.epochs, e))?
+            sim.loss(&v0, &mut loss, None)
+                .map_err(|e| fail(p.epochs, e))?
         };
         let mass = &object.body.material.mass;
         let mean_v =
@@ -734,41 +701,53 @@ impl TypedStage for Velocity {
     }
 }
 
-/// What the velocity field's fit holds fixed.
-struct Frozen<'a> {
+/// What every rollout of the stage holds fixed: the object, its guessed material, the frames
+/// and how they are simulated.
+#[derive(Clone, Copy)]
+struct Simulated<'a> {
     object: &'a Object,
     material: &'a MaterialValues,
-    /// The rigid motion of every particle (m/s).
-    base: Vec<DVec3>,
     last: u16,
     precision: pipe_mpm::Precision,
     interrupt: &'a std::sync::atomic::AtomicBool,
 }
 
-/// The loss of initial velocities `v0` over frames `1..=last`; with `up_to`, the rollout may
-/// stop once its loss exceeds it, returning a partial loss above it ([`Wants::LossUpTo`]).
-#[allow(clippy::too_many_arguments)]
-fn run_loss(
-    object: &Object,
-    material: &MaterialValues,
-    v0: &[DVec3],
-    last: u16,
-    precision: pipe_mpm::Precision,
-    interrupt: &std::sync::atomic::AtomicBool,
-    loss: &mut ViewsLoss<'_>,
-    up_to: Option<f64>,
-) -> Result<f64, RolloutError> {
-    Rollout {
-        object,
-        material,
-        v0,
-        frames: last,
-        precision,
-        interrupt: Some(interrupt),
-        moduli: None,
+impl<'a> Simulated<'a> {
+    /// The rollout of frames `1..=last` from initial velocities `v0` (m/s).
+    fn rollout<'b>(&self, v0: &'b [DVec3]) -> Rollout<'b>
+    where
+        'a: 'b,
+    {
+        Rollout {
+            object: self.object,
+            material: self.material,
+            v0,
+            frames: self.last,
+            precision: self.precision,
+            interrupt: Some(self.interrupt),
+            moduli: None,
+        }
     }
-    .run(loss, up_to.map_or(Wants::Loss, Wants::LossUpTo))
-    .map(|o| o.loss())
+
+    /// The loss of initial velocities `v0`; with `up_to`, the rollout may stop once its loss
+    /// exceeds it, returning a partial loss above it ([`Wants::LossUpTo`]).
+    fn loss(
+        &self,
+        v0: &[DVec3],
+        loss: &mut ViewsLoss<'_>,
+        up_to: Option<f64>,
+    ) -> Result<f64, RolloutError> {
+        self.rollout(v0)
+            .run(loss, up_to.map_or(Wants::Loss, Wants::LossUpTo))
+            .map(|o| o.loss())
+    }
+}
+
+/// What the velocity field's fit holds fixed.
+struct Frozen<'a> {
+    sim: Simulated<'a>,
+    /// The rigid motion of every particle (m/s).
+    base: Vec<DVec3>,
 }
 
 /// The residual field from zero (the rigid motion `fixed.base`): Adam's direction on the
@@ -787,6 +766,7 @@ fn fit_velocity_field(
         })
     };
     let points: Vec<[f64; 3]> = fixed
+        .sim
         .object
         .body
         .state
@@ -821,20 +801,14 @@ fn fit_velocity_field(
     let mut losses = Vec::new();
     for epoch in 0..epochs {
         ctx.check_interrupted()?;
-        let out = Rollout {
-            object: fixed.object,
-            material: fixed.material,
-            v0: &v0,
-            frames: fixed.last,
-            precision: fixed.precision,
-            interrupt: Some(fixed.interrupt),
-            moduli: None,
-        }
-        .run(loss, Wants::Velocity)
-        .map_err(|e| match e {
-            RolloutError::Interrupted => StageError::Interrupted,
-            e => training(epoch, e.to_string()),
-        })?;
+        let out = fixed
+            .sim
+            .rollout(&v0)
+            .run(loss, Wants::Velocity)
+            .map_err(|e| match e {
+                RolloutError::Interrupted => StageError::Interrupted,
+                e => training(epoch, e.to_string()),
+            })?;
         let g = out.v0.as_ref().expect("a velocity rollout gives ∂L/∂v0");
         let mut grad = vf.backward(g).map_err(|e| training(epoch, e.to_string()))?;
         vf.field
@@ -853,16 +827,7 @@ fn fit_velocity_field(
             let Some(trial) = v0_of(&vf) else {
                 return Ok(None);
             };
-            match run_loss(
-                fixed.object,
-                fixed.material,
-                &trial,
-                fixed.last,
-                fixed.precision,
-                fixed.interrupt,
-                loss,
-                Some(loss0),
-            ) {
+            match fixed.sim.loss(&trial, loss, Some(loss0)) {
                 Ok(l) => Ok(Some(l)),
                 Err(RolloutError::Interrupted) => Err(StageError::Interrupted),
                 Err(_) => Ok(None),

@@ -211,6 +211,25 @@ fn velocity(object: &Object, shift: DVec3) -> Vec<DVec3> {
         .collect()
 }
 
+/// The f64 rollout of the tiny scene under `values` (and per-particle `moduli`).
+fn rollout_of<'a>(
+    object: &'a Object,
+    values: &'a MaterialValues,
+    v0: &'a [DVec3],
+    frames: u16,
+    moduli: Option<&'a Moduli>,
+) -> Rollout<'a> {
+    Rollout {
+        object,
+        material: values,
+        v0,
+        frames,
+        precision: Precision::F64,
+        interrupt: None,
+        moduli,
+    }
+}
+
 /// One f64 rollout of the tiny scene under `values` (and per-particle `moduli`), scored by
 /// [`LinearLoss`].
 fn run_rollout(
@@ -221,33 +240,13 @@ fn run_rollout(
     moduli: Option<&Moduli>,
     wants: Wants,
 ) -> Result<pipe::physics::rollout::Outcome, RolloutError> {
-    let mut l = LinearLoss::new(object);
-    Rollout {
-        object,
-        material: values,
-        v0,
-        frames,
-        precision: Precision::F64,
-        interrupt: None,
-        moduli,
-    }
-    .run(&mut l, wants)
+    rollout_of(object, values, v0, frames, moduli).run(&mut LinearLoss::new(object), wants)
 }
 
 fn rollout_loss(object: &Object, values: &MaterialValues, v0: &[DVec3], frames: u16) -> f64 {
-    let mut l = LinearLoss::new(object);
-    Rollout {
-        object,
-        material: values,
-        v0,
-        frames,
-        precision: Precision::F64,
-        interrupt: None,
-        moduli: None,
-    }
-    .run(&mut l, Wants::Loss)
-    .unwrap()
-    .loss()
+    run_rollout(object, values, v0, frames, None, Wants::Loss)
+        .unwrap()
+        .loss()
 }
 
 /// A non-negative frame loss: the square of [`LinearLoss`]'s (losses only).
@@ -279,18 +278,9 @@ fn a_trial_rollout_stops_once_its_loss_exceeds_the_bound() {
     let values = elastic(5e3);
     let v0 = velocity(&object, DVec3::ZERO);
     let run = |wants: Wants| {
-        let mut l = SquaredLoss(LinearLoss::new(&object));
-        Rollout {
-            object: &object,
-            material: &values,
-            v0: &v0,
-            frames: 3,
-            precision: Precision::F64,
-            interrupt: None,
-            moduli: None,
-        }
-        .run(&mut l, wants)
-        .unwrap()
+        rollout_of(&object, &values, &v0, 3, None)
+            .run(&mut SquaredLoss(LinearLoss::new(&object)), wants)
+            .unwrap()
     };
     let full = run(Wants::Loss);
     assert_eq!(full.frame_loss.len(), 3);
@@ -310,17 +300,14 @@ fn a_trial_rollout_stops_once_its_loss_exceeds_the_bound() {
     assert!(!whole.cut_short);
     assert_eq!(whole.frame_loss, full.frame_loss);
     // A loss that may be negative is never cut short: a later frame could lower the sum.
-    let mut linear = LinearLoss::new(&object);
-    let out = Rollout {
-        object: &object,
-        material: &values,
-        v0: &v0,
-        frames: 3,
-        precision: Precision::F64,
-        interrupt: None,
-        moduli: None,
-    }
-    .run(&mut linear, Wants::LossUpTo(f64::NEG_INFINITY))
+    let out = run_rollout(
+        &object,
+        &values,
+        &v0,
+        3,
+        None,
+        Wants::LossUpTo(f64::NEG_INFINITY),
+    )
     .unwrap();
     assert!(!out.cut_short);
     assert_eq!(out.frame_loss.len(), 3);
@@ -447,15 +434,7 @@ fn check_material_and_velocity_gradients(object: &Object) {
     let v0 = velocity(&object, DVec3::ZERO);
     let frames = 2;
     let mut loss = LinearLoss::new(&object);
-    let run = Rollout {
-        object: &object,
-        material: &values,
-        v0: &v0,
-        frames,
-        precision: Precision::F64,
-        interrupt: None,
-        moduli: None,
-    };
+    let run = rollout_of(&object, &values, &v0, frames, None);
     let out = run.run(&mut loss, Wants::Velocity).unwrap();
     assert_eq!(out.substeps, vec![10, 10]);
     let grad = out.material.clone().unwrap();
@@ -791,17 +770,9 @@ fn a_newtonian_scene_learns_only_the_fluids_parameters() {
     object.spec.substeps = None;
     let v0 = velocity(&object, DVec3::ZERO);
     let mut l = LinearLoss::new(&object);
-    let out = Rollout {
-        object: &object,
-        material: &fluid,
-        v0: &v0,
-        frames: 1,
-        precision: Precision::F64,
-        interrupt: None,
-        moduli: None,
-    }
-    .run(&mut l, Wants::Material(Truncate::Frame))
-    .unwrap();
+    let out = rollout_of(&object, &fluid, &v0, 1, None)
+        .run(&mut l, Wants::Material(Truncate::Frame))
+        .unwrap();
     let keys: Vec<Param> = out.material.unwrap().into_keys().collect();
     assert_eq!(keys, vec![Param::Viscosity, Param::BulkModulus]);
 }
