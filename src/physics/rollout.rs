@@ -19,6 +19,7 @@ use pipe_mpm::{
 };
 use serde::{Deserialize, Serialize};
 
+use super::free_flight::FreeFrames;
 use super::object::Object;
 use super::params::{MaterialValues, Param};
 use crate::pipeline::spec::MaterialFamily;
@@ -108,7 +109,7 @@ pub enum Wants {
 pub struct Outcome {
     /// Loss of each frame `1..=frames`.
     pub frame_loss: Vec<f64>,
-    /// Substeps of each frame.
+    /// Substeps of each frame (0 for a frame in closed form, [`Rollout::free`]).
     pub substeps: Vec<usize>,
     /// `∂L/∂(material parameter)` of the family's parameters (values, not encodings); with
     /// per-particle [`Moduli`], `E` and `ν` hold the sums of their per-particle gradients
@@ -152,6 +153,11 @@ pub struct Rollout<'a> {
     /// Per-particle `E` and `ν` replacing the values' (a material field, paper §3.2); `None`:
     /// the values' for every particle.
     pub moduli: Option<&'a Moduli>,
+    /// The first frames in closed form, where the body is in free flight from `v0` (which
+    /// they must be the motion of): their losses are the closed form's, their material
+    /// gradient zero (no stress acts in free flight), and the simulation starts at the last
+    /// of them. Ignored by [`Wants::Velocity`] (`v0`'s gradient runs through every frame).
+    pub free: Option<&'a FreeFrames>,
 }
 
 /// Per-particle elastic moduli of a solid (one entry per simulated particle).
@@ -333,15 +339,37 @@ impl ModelVisitor for Visit<'_, '_> {
         let mut frame_loss = Vec::new();
         let mut substeps = Vec::new();
         // Truncate::None and Wants::Velocity: every frame's tape, substeps and seed.
-        let mut kept: Vec<(pipe_mpm::Tape, usize, StateGrad)> = Vec::new();
+        let mut kept: Vec<(u16, pipe_mpm::Tape, usize, StateGrad)> = Vec::new();
         let grads = !matches!(wants, Wants::Loss | Wants::LossUpTo(_));
         let bound = match wants {
             Wants::LossUpTo(b) if loss.non_negative() => Some(b),
             _ => None,
         };
+        let past = |frame_loss: &[f64], frame: u16| {
+            bound.is_some_and(|b| frame < r.frames && frame_loss.iter().sum::<f64>() > b)
+        };
         let mut cut_short = false;
         let keep_all = matches!(wants, Wants::Velocity | Wants::Material(Truncate::None));
-        for frame in 1..=r.frames {
+        let free = match (wants, r.free) {
+            (Wants::Velocity, _) | (_, None) => None,
+            (_, Some(f)) => Some(f),
+        };
+        let closed = free.map_or(0, |f| f.frames().min(r.frames));
+        for frame in 1..=closed {
+            let at = free.expect("closed-form frames").state(frame);
+            frame_loss.push(loss.frame(frame, at, None)?);
+            substeps.push(0);
+            if past(&frame_loss, frame) {
+                cut_short = true;
+                break;
+            }
+            if frame == closed {
+                state.clone_from(at);
+            }
+        }
+        // A trial cut short within the closed-form frames simulates none.
+        let first = if cut_short { r.frames + 1 } else { closed + 1 };
+        for frame in first..=r.frames {
             if r.interrupt
                 .is_some_and(|i| i.load(std::sync::atomic::Ordering::SeqCst))
             {
@@ -367,7 +395,7 @@ impl ModelVisitor for Visit<'_, '_> {
             if !grads {
                 sim.run(&mut state, &mat, t0, n).map_err(sim_err(frame))?;
                 frame_loss.push(loss.frame(frame, &state, None)?);
-                if bound.is_some_and(|b| frame < r.frames && frame_loss.iter().sum::<f64>() > b) {
+                if past(&frame_loss, frame) {
                     cut_short = true;
                     break;
                 }
@@ -379,7 +407,7 @@ impl ModelVisitor for Visit<'_, '_> {
             let mut seed = StateGrad::zeros(n_all);
             frame_loss.push(loss.frame(frame, &state, Some(&mut seed))?);
             if keep_all {
-                kept.push((tape, n, seed));
+                kept.push((frame, tape, n, seed));
                 continue;
             }
             let g = sim
@@ -418,8 +446,7 @@ impl ModelVisitor for Visit<'_, '_> {
         if keep_all {
             // Back through every frame, carrying ∂L/∂state from each frame's end to its start.
             let mut carry: Option<StateGrad> = None;
-            for (i, (tape, n, mut seed)) in kept.into_iter().enumerate().rev() {
-                let frame = i as u16 + 1;
+            for (frame, tape, n, mut seed) in kept.into_iter().rev() {
                 if let Some(c) = carry.take() {
                     seed.add_assign(&c);
                 }

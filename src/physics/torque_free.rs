@@ -70,6 +70,21 @@ impl FreeRotation {
         }
     }
 
+    /// A bound on the angular speed `|ω(t)|` (rad/s) at every time of a body started with `ω₀`
+    /// (rad/s): `|Ω| ≤ ‖J⁻¹‖_F |π|`, and `|π| = |L| = |I ω₀|` is constant (`|ω₀|` when the body
+    /// has no inertia to turn with).
+    pub fn max_rate(&self, omega0: DVec3) -> f64 {
+        let det = self.turning.determinant();
+        if !(det > 0.0 && det.is_finite()) {
+            return omega0.length();
+        }
+        let m = self.turning.inverse();
+        let norm =
+            (m.x_axis.length_squared() + m.y_axis.length_squared() + m.z_axis.length_squared())
+                .sqrt();
+        norm * (self.own * omega0).length()
+    }
+
     /// The orientation at each of `times` (s, increasing from ≥ 0) of a body that started at
     /// rest orientation with angular velocity field `ω₀` (rad/s); with `jacobian`, also
     /// `∂θ/∂ω₀`. A body with no inertia to turn with (`det J ≤ 0`) turns as `exp([ω₀ t]×)`.
@@ -86,12 +101,8 @@ impl FreeRotation {
                 .collect();
         }
         let j_inv = self.turning.inverse();
-        // |Ω| ≤ ‖J⁻¹‖ |π| and |π| = |L| is constant: the steps of each interval, from ω₀.
-        let norm = |m: DMat3| {
-            (m.x_axis.length_squared() + m.y_axis.length_squared() + m.z_axis.length_squared())
-                .sqrt()
-        };
-        let top = norm(j_inv) * (self.own * omega0).length();
+        // The steps of each interval, from the bound on the rate.
+        let top = self.max_rate(omega0);
         let mut steps = Vec::with_capacity(times.len());
         let mut last = 0.0;
         for &t in times {

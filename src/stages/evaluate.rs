@@ -390,6 +390,8 @@ impl TypedStage for Evaluate {
             precision: p.precision.mpm(),
             interrupt: Some(interrupt),
             moduli: moduli.as_ref(),
+            // Re-simulated from frame 0, as `pipe simulate` does.
+            free: None,
         };
         let mut gaussians = std::borrow::Cow::Borrowed(&object.gaussians);
         let colour_refit = if p.colour_epochs > 0 {

@@ -124,6 +124,11 @@ pub struct MaterialParams {
     /// (the sample scenes were made at 0.02 m).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dx: Option<f64>,
+    /// Start the rollouts where the body's free flight ends (the learned rigid motion in closed
+    /// form before it: [`crate::physics::free_flight::FreeFrames`]); `false` simulates every
+    /// frame from frame 0.
+    #[serde(default = "closed_form")]
+    pub closed_form: bool,
     /// Precision of the simulation and its adjoint.
     #[serde(default)]
     pub precision: PrecisionParam,
@@ -155,6 +160,9 @@ fn lr_final() -> f64 {
 }
 fn cells() -> f64 {
     24.0
+}
+fn closed_form() -> bool {
+    true
 }
 fn probe_decades() -> f64 {
     1.0
@@ -258,7 +266,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 14;
+    const VERSION: u32 = 15;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 
@@ -456,6 +464,42 @@ impl TypedStage for MaterialStage {
             ..Default::default()
         };
         let precision = p.precision.mpm();
+        // While the body is in free flight its material plays no part: the rollouts start where
+        // the flight ends (the learned rigid motion in closed form; not with a velocity field,
+        // whose residual deforms the body).
+        let free = (p.closed_form
+            && velocity.model != crate::stages::velocity::VelocityModel::Field)
+            .then(|| {
+                crate::physics::free_flight::FreeFrames::of(
+                    &object,
+                    &velocity.rigid(&object),
+                    last,
+                    is_fluid(family),
+                )
+            })
+            .flatten();
+        match &free {
+            Some(f) if f.frames() >= last => ctx.progress.log(&format!(
+                "material: warning: the body is in free flight over every frame fitted (1..={last}): they say nothing of its material, which stays at the guess; fit frames after it lands (`frames`), or set `closed_form: false` to fit what the simulation's numerics show of it"
+            )),
+            Some(f) => ctx.progress.log(&format!(
+                "material: the body is in free flight until frame {}: the rollouts start there (frames 1..={} in closed form)",
+                f.frames(),
+                f.frames()
+            )),
+            None => {}
+        }
+        // Every rollout of the stage: the guess's, the others by `..base`.
+        let base = Rollout {
+            object: &object,
+            material: &guess,
+            v0: &v0,
+            frames: last,
+            precision,
+            interrupt: Some(interrupt),
+            moduli: None,
+            free: free.as_ref(),
+        };
         let fail = |epoch: u32, e: RolloutError| -> StageError {
             match e {
                 RolloutError::Interrupted => StageError::Interrupted,
@@ -494,13 +538,8 @@ impl TypedStage for MaterialStage {
             }
             let values = values_of(&u);
             let rollout = Rollout {
-                object: &object,
                 material: &values,
-                v0: &v0,
-                frames: last,
-                precision,
-                interrupt: Some(interrupt),
-                moduli: None,
+                ..base
             };
             let step = |u: &mut Vec<f64>,
                         adam: &mut Adam,
@@ -690,13 +729,9 @@ impl TypedStage for MaterialStage {
                     moduli: Option<&crate::physics::rollout::Moduli>,
                     loss: &mut ViewsLoss<'_>| {
             Rollout {
-                object: &object,
                 material: values,
-                v0: &v0,
-                frames: last,
-                precision,
-                interrupt: Some(interrupt),
                 moduli,
+                ..base
             }
             .run(loss, Wants::Loss)
             .map_err(|e| fail(p.epochs, e))
@@ -707,7 +742,14 @@ impl TypedStage for MaterialStage {
             MaterialModel::Global => (None, None),
             MaterialModel::Field => (
                 Some(crate::stages::material_field::fit(
-                    p, ctx, &object, &v0, last, &mut loss, &global, &learned,
+                    p,
+                    ctx,
+                    Rollout {
+                        material: &global,
+                        ..base
+                    },
+                    &mut loss,
+                    &learned,
                 )?),
                 None,
             ),
@@ -762,11 +804,12 @@ impl TypedStage for MaterialStage {
                         let f = crate::stages::material_field::fit(
                             p,
                             ctx,
-                            &object,
-                            &v0,
-                            fit_last,
+                            Rollout {
+                                material: &global,
+                                frames: fit_last,
+                                ..base
+                            },
                             &mut fit_loss,
-                            &global,
                             &learned,
                         )?;
                         let lg = eval(&global, None, &mut held_loss)?.loss();

@@ -7,13 +7,11 @@
 //! (the seed method's online descent). The family's other learned parameters (ν, a yield
 //! stress, ...) stay global and keep stepping with their own Adam at the field's rates.
 
-use glam::DVec3;
 use pipe_field::{AdamConfig as FieldAdamConfig, FieldAdam, LrSchedule};
 
 use crate::physics::adam::{Adam, AdamConfig, decayed};
 use crate::physics::fit::FitError;
 use crate::physics::material_field::{MaterialField, percentiles};
-use crate::physics::object::Object;
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::rollout::{
     FrameGradient, Moduli, NextMaterial, Rollout, RolloutError, Truncate, Wants, is_fluid,
@@ -77,18 +75,16 @@ fn training(epoch: u32, message: String) -> StageError {
     StageError::failed(FitError::Training { epoch, message })
 }
 
-/// Learns the field from `start` (the global fit) over frames `1..=last`.
-#[allow(clippy::too_many_arguments)]
+/// Learns the field from `base`'s material (the global fit) over its frames, its rollouts
+/// `base`'s with the field's moduli.
 pub(crate) fn fit(
     p: &MaterialParams,
     ctx: &mut StageContext<'_>,
-    object: &Object,
-    v0: &[DVec3],
-    last: u16,
+    base: Rollout<'_>,
     loss: &mut ViewsLoss<'_>,
-    start: &MaterialValues,
     learned: &[Param],
 ) -> Result<FieldFit, StageError> {
+    let (object, start, last) = (base.object, base.material, base.frames);
     let invalid = |m: String| StageError::failed(FitError::Invalid(m));
     let outputs = outputs(start.family, learned, &p.field.vary, ctx.name)?;
     let others: Vec<Param> = learned
@@ -129,8 +125,6 @@ pub(crate) fn fit(
     let mut moduli = field
         .moduli(&values)
         .map_err(|e| training(0, e.to_string()))?;
-    let precision = p.precision.mpm();
-    let interrupt = ctx.interrupt_flag();
     ctx.progress.log(&format!(
         "material field: {} outputs ({}), {}² planes × {} channels, MLP {}×{}, {} weights, {epochs} epochs from the global fit",
         outputs.len(),
@@ -190,13 +184,9 @@ pub(crate) fn fit(
                 }))
             };
             let rollout = Rollout {
-                object,
                 material: &values,
-                v0,
-                frames: last,
-                precision,
-                interrupt: Some(interrupt),
                 moduli: Some(&moduli),
+                ..base
             };
             match p.field.truncate {
                 Truncate::Frame => rollout.run_online(loss, &mut on_frame),
@@ -249,13 +239,9 @@ pub(crate) fn fit(
                     return Ok(None);
                 };
                 match (Rollout {
-                    object,
                     material: &trial_values,
-                    v0,
-                    frames: last,
-                    precision,
-                    interrupt: Some(interrupt),
                     moduli: Some(&trial_moduli),
+                    ..base
                 })
                 .run(loss, Wants::LossUpTo(loss0))
                 {

@@ -253,7 +253,7 @@ impl VelocityResult {
 impl TypedStage for Velocity {
     type Params = VelocityParams;
     const KIND: &'static str = "velocity";
-    const VERSION: u32 = 11;
+    const VERSION: u32 = 12;
     const DESCRIPTION: &'static str = "Learn the initial velocity from the first frames (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup"];
 
@@ -726,6 +726,7 @@ impl<'a> Simulated<'a> {
             precision: self.precision,
             interrupt: Some(self.interrupt),
             moduli: None,
+            free: None,
         }
     }
 

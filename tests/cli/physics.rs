@@ -227,6 +227,7 @@ fn rollout_of<'a>(
         precision: Precision::F64,
         interrupt: None,
         moduli,
+        free: None,
     }
 }
 
@@ -953,9 +954,12 @@ fn the_demo_at_draft_learns_velocity_and_e_from_ten_times_too_stiff() {
 fn a_material_field_is_learned_from_the_global_fit_and_written() {
     use pipe::physics::material_field::FieldTable;
     use pipe::physics::particles::MaterialParticles;
+    // Frames 1–4 are the torus's free flight: `closed_form: false` simulates them, so that
+    // the field has a gradient to follow (in closed form they say nothing of the material).
     let stages = "  ingest: {frames: [0, 1, 2, 3, 4]}\n  init: {}\n  warmup: {epochs: 20}\n  \
                   velocity: {epochs: 2, frames: 3, cells: 10}\n  \
                   material: {model: field, epochs: 2, cells: 10, guess: {E: 3.0e5}, \
+                  closed_form: false, \
                   field: {epochs: 2, resolution: 8, channels: 4, hidden: 16, truncate: frame}}\n";
     let dir = tempfile::tempdir().unwrap();
     let file = demo_pipeline(dir.path(), "draft", stages);
@@ -1317,4 +1321,172 @@ fn free_flight_needs_a_body_clear_of_every_boundary() {
         .iter_mut()
         .for_each(|x| x.y -= 4.0 * dx - 0.2 * dx);
     assert!(!touches_nothing(&object, &at([0.0; 3]), 2));
+}
+
+/// The `material` stage's rollouts start where the free flight ends: a block thrown down and
+/// sideways, clear of the ground for its first frames, then landing on it (sticky). Started
+/// from the closed form, the rollout's frames are the simulated ones' up to the integrator's
+/// own lag behind the parabola, its closed-form frames take no substep, and its material
+/// gradient is the whole one's (no stress acts in free flight). A spin stresses the body: a
+/// fast one gets no closed-form frame.
+#[test]
+fn a_rollout_started_where_the_free_flight_ends_matches_the_one_from_frame_0() {
+    use pipe::physics::fit::RigidVelocity;
+    use pipe::physics::free_flight::{FreeFrames, frames_in_flight};
+    let mut object = object();
+    object.spec.substeps = None;
+    let dx = object.body.setup.dx;
+    object.body.state.x.iter_mut().for_each(|x| x.y += 2.0 * dx);
+    let rigid = RigidVelocity {
+        linear: [0.3, -2.0, 0.0],
+        angular: [0.0; 3],
+        centre: object.centre_of_mass().to_array(),
+    };
+    let frames = 8;
+    let spinning = RigidVelocity {
+        angular: [0.0, 0.0, 5.0],
+        ..rigid
+    };
+    assert!(frames_in_flight(&object, &spinning, frames) >= 1);
+    assert!(FreeFrames::of(&object, &spinning, frames, false).is_none());
+    let free = FreeFrames::of(&object, &rigid, frames, false).expect("a free flight");
+    let k = free.frames();
+    println!("dx {dx:.4} m: in free flight until frame {k} of {frames}");
+    assert!(k >= 1 && k < frames - 2, "{k}");
+    assert_eq!(k, frames_in_flight(&object, &rigid, frames));
+    let values = elastic(5e3);
+    let v0 = rigid.field(&object);
+    struct Kept<'a>(LinearLoss<'a>, Vec<State>);
+    impl FrameLoss for Kept<'_> {
+        fn frame(
+            &mut self,
+            frame: u16,
+            s: &State,
+            g: Option<&mut StateGrad>,
+        ) -> Result<f64, RolloutError> {
+            self.1.push(s.clone());
+            self.0.frame(frame, s, g)
+        }
+    }
+    let run = |free: Option<&FreeFrames>, wants: Wants| {
+        let mut loss = Kept(LinearLoss::new(&object), Vec::new());
+        let out = Rollout {
+            free,
+            ..rollout_of(&object, &values, &v0, frames, None)
+        }
+        .run(&mut loss, wants)
+        .unwrap();
+        (out, loss.1)
+    };
+    let (whole, whole_states) = run(None, Wants::Material(Truncate::Frame));
+    let (started, started_states) = run(Some(&free), Wants::Material(Truncate::Frame));
+    assert_eq!(started.frame_loss.len(), usize::from(frames));
+    assert_eq!(started_states.len(), whole_states.len());
+    assert!(started.substeps[..usize::from(k)].iter().all(|&n| n == 0));
+    assert!(started.substeps[usize::from(k)..].iter().all(|&n| n > 0));
+    let travel = (whole_states.last().unwrap().x[0] - object.body.state.x[0]).length();
+    // Symplectic Euler's substeps put a falling body ½·g·t·Δt below the parabola: the
+    // simulated start is that far from the exact one at frame k.
+    let dt = object.spec.frame_dt / *whole.substeps[..usize::from(k)].iter().min().unwrap() as f64;
+    let t_k = f64::from(k) * object.spec.frame_dt;
+    let lag = 0.5 * DVec3::from_array(object.spec.gravity).length() * t_k * dt;
+    println!(
+        "substeps {:?}; the integrator's lag at frame {k}: {lag:.3e} m",
+        whole.substeps
+    );
+    for (f, (a, b)) in whole_states.iter().zip(&started_states).enumerate() {
+        assert!(b.x.iter().chain(&b.v).all(|v| v.is_finite()));
+        let off =
+            a.x.iter()
+                .zip(&b.x)
+                .map(|(a, b)| (*a - *b).length())
+                .fold(0.0, f64::max);
+        println!("frame {}: {off:.3e} m apart (travel {travel:.3e} m)", f + 1);
+        assert!(off <= 1.1 * lag + 1e-6, "frame {}: {off} m", f + 1);
+    }
+    let (ge, gs) = (
+        whole.material.as_ref().unwrap()[&Param::E],
+        started.material.as_ref().unwrap()[&Param::E],
+    );
+    println!("∂L/∂E: from frame 0 {ge:.6e}, from frame {k} {gs:.6e}");
+    assert!(ge.abs() > 0.0 && gs.is_finite());
+    assert!((gs - ge).abs() <= 0.002 * ge.abs(), "{gs:e} against {ge:e}");
+    // The velocity's gradient needs every frame: the closed form is not used for it.
+    let (vel, _) = run(Some(&free), Wants::Velocity);
+    assert!(vel.substeps.iter().all(|&n| n > 0));
+    assert!(vel.v0.is_some_and(|g| g.len() == object.particles()));
+    // A trial cut short within the closed-form frames simulates nothing.
+    let mut squared = SquaredLoss(LinearLoss::new(&object));
+    let cut = Rollout {
+        free: Some(&free),
+        ..rollout_of(&object, &values, &v0, frames, None)
+    }
+    .run(&mut squared, Wants::LossUpTo(0.0))
+    .unwrap();
+    assert!(cut.cut_short && cut.frame_loss.len() == 1 && cut.substeps == [0]);
+}
+
+/// The free flight is checked between frames too: a bar spinning half a turn per frame about
+/// its middle, lying clear of the ground at every frame, dips a tip into it between two.
+#[test]
+fn a_tip_that_swings_into_the_ground_between_two_frames_ends_the_free_flight() {
+    use pipe::physics::fit::RigidVelocity;
+    use pipe::physics::free_flight::{frames_in_flight, positions};
+    use pipe::physics::torque_free::FreeRotation;
+    let mut g = Gaussians {
+        sh_degree: 1,
+        ..Default::default()
+    };
+    for a in 0..16 {
+        g.id.push(a);
+        g.position.push([-0.15 + 0.02 * a as f32, 0.16, 0.0]);
+        g.log_scale.push([0.011f32.ln(); 3]);
+        g.rotation.push([1.0, 0.0, 0.0, 0.0]);
+        g.opacity_logit.push(2.0);
+        g.sh.extend([0.5f32; 12]);
+        g.simulated.push(true);
+    }
+    let mut object = object_on(&g, Resolution::Cells(16.0)).unwrap();
+    object.spec.gravity = [0.0; 3];
+    let c = object.centre_of_mass();
+    // Half a turn per frame about z at the simulator's rate, from the rate it turns ω₀ at.
+    let body = FreeRotation::of_simulated(
+        &object.body.state.x,
+        &object.body.material.mass,
+        c,
+        object.body.setup.dx,
+    );
+    let per = body.orientations(DVec3::Z, &[1.0], false)[0].omega.z;
+    let omega = std::f64::consts::PI / object.spec.frame_dt / per;
+    let rigid = RigidVelocity {
+        linear: [0.0; 3],
+        angular: [0.0, 0.0, omega],
+        centre: c.to_array(),
+    };
+    let dx = object.body.setup.dx;
+    let lowest = |x: &[DVec3]| x.iter().map(|x| x.y).fold(f64::MAX, f64::min);
+    let reach = object
+        .body
+        .state
+        .x
+        .iter()
+        .map(|x| (*x - c).length())
+        .fold(0.0, f64::max);
+    println!("dx {dx:.4} m, centre {:.3} m up, reach {reach:.3} m", c.y);
+    assert!(c.y - reach < 1.5 * dx, "the swing reaches the ground");
+    for frame in 0..=2 {
+        let low = lowest(&positions(&object, &rigid, frame));
+        println!("frame {frame}: lowest particle {low:.4} m");
+        assert!(
+            low > 2.0 * dx,
+            "frame {frame} is clear of the ground: {low}"
+        );
+    }
+    assert_eq!(frames_in_flight(&object, &rigid, 2), 0);
+    // At rest the same bar is in free flight over both frames.
+    let still = RigidVelocity {
+        angular: [0.0; 3],
+        ..rigid
+    };
+    assert_eq!(frames_in_flight(&object, &still, 2), 2);
 }
