@@ -65,6 +65,17 @@ pub fn positions(object: &Object, rigid: &RigidVelocity, frame: u16) -> Vec<DVec
     )
 }
 
+/// The largest distance (m) of `object`'s particles from `centre` (m).
+fn reach(object: &Object, centre: DVec3) -> f64 {
+    object
+        .body
+        .state
+        .x
+        .iter()
+        .map(|x| (*x - centre).length())
+        .fold(0.0, f64::max)
+}
+
 /// The rest particles turned by `r` about `centre` and moved to `shift` (m).
 fn placed(object: &Object, centre: DVec3, r: DMat3, shift: DVec3) -> Vec<DVec3> {
     object
@@ -122,13 +133,7 @@ pub fn frames_in_flight(object: &Object, rigid: &RigidVelocity, frames: u16) -> 
     let body = rotation(object, rigid);
     let omega0 = DVec3::from_array(rigid.angular);
     let frame_dt = object.spec.frame_dt;
-    let reach = object
-        .body
-        .state
-        .x
-        .iter()
-        .map(|x| (*x - c).length())
-        .fold(0.0, f64::max);
+    let reach = reach(object, c);
     let t_end = f64::from(frames) * frame_dt;
     let speed = DVec3::from_array(rigid.linear).length()
         + DVec3::from_array(object.spec.gravity).length() * t_end
@@ -199,14 +204,7 @@ impl FreeFrames {
     /// The free flight of `rigid` over frames `1..=k`, `k ≤ frames` from [`frames_in_flight`];
     /// `None` when the body touches something by frame 1.
     pub fn of(object: &Object, rigid: &RigidVelocity, frames: u16, fluid: bool) -> Option<Self> {
-        let c = DVec3::from_array(rigid.centre);
-        let reach = object
-            .body
-            .state
-            .x
-            .iter()
-            .map(|x| (*x - c).length())
-            .fold(0.0, f64::max);
+        let reach = reach(object, DVec3::from_array(rigid.centre));
         let rate = rotation(object, rigid).max_rate(DVec3::from_array(rigid.angular));
         let drift = |k: u16| {
             let t = f64::from(k) * object.spec.frame_dt;
