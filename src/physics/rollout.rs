@@ -350,21 +350,20 @@ impl ModelVisitor for Visit<'_, '_> {
         };
         let mut cut_short = false;
         let keep_all = matches!(wants, Wants::Velocity | Wants::Material(Truncate::None));
-        let free = match (wants, r.free) {
-            (Wants::Velocity, _) | (_, None) => None,
-            (_, Some(f)) => Some(f),
-        };
+        // The closed-form frames (not for v0's gradient, which runs through every frame).
+        let free = r.free.filter(|_| wants != Wants::Velocity);
         let closed = free.map_or(0, |f| f.frames().min(r.frames));
-        for frame in 1..=closed {
-            let at = free.expect("closed-form frames").state(frame);
-            frame_loss.push(loss.frame(frame, at, None)?);
-            substeps.push(0);
-            if past(&frame_loss, frame) {
-                cut_short = true;
-                break;
+        if let Some(f) = free {
+            for frame in 1..=closed {
+                frame_loss.push(loss.frame(frame, f.state(frame), None)?);
+                substeps.push(0);
+                if past(&frame_loss, frame) {
+                    cut_short = true;
+                    break;
+                }
             }
-            if frame == closed {
-                state.clone_from(at);
+            if !cut_short && closed > 0 {
+                state.clone_from(f.state(closed));
             }
         }
         // A trial cut short within the closed-form frames simulates none.
