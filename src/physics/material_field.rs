@@ -208,9 +208,22 @@ impl MaterialField {
     /// # Errors
     /// A non-finite output, named.
     pub fn moduli(&self, values: &MaterialValues) -> Result<Moduli, FieldError> {
-        let y = self.field.forward(&self.points)?;
+        self.moduli_at(&self.points, values)
+    }
+
+    /// Per-particle `E` and `ν` at other rest positions `points` (m), e.g. the particles of
+    /// the same object on another grid: the field is a function of space, not of particles.
+    ///
+    /// # Errors
+    /// A non-finite output, named.
+    pub fn moduli_at(
+        &self,
+        points: &[[f64; 3]],
+        values: &MaterialValues,
+    ) -> Result<Moduli, FieldError> {
+        let y = self.field.forward(points)?;
         let k = self.outputs.len();
-        let n = self.points.len();
+        let n = points.len();
         let mut m = Moduli {
             e: vec![values.get(Param::E).unwrap_or(f64::NAN); n],
             nu: vec![values.get(Param::Nu).unwrap_or(f64::NAN); n],

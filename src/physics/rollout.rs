@@ -158,6 +158,48 @@ pub struct Rollout<'a> {
     /// gradient zero (no stress acts in free flight), and the simulation starts at the last
     /// of them. Ignored by [`Wants::Velocity`] (`v0`'s gradient runs through every frame).
     pub free: Option<&'a FreeFrames>,
+    /// Adds the rollout's work to this counter ([`Work`]).
+    pub work: Option<&'a Work>,
+}
+
+/// The simulation work of rollouts, in particle-substeps: each substep simulated forward
+/// counts the particles once, and each substep reversed counts them again. It depends only on
+/// the rollouts asked for, never on threads or timing, so a descent bounded by it
+/// stops at the same point on every machine.
+#[derive(Debug, Default)]
+pub struct Work(std::sync::atomic::AtomicU64);
+
+impl Work {
+    /// A counter that starts at `done` particle-substeps (a resumed stage's).
+    pub fn starting_at(done: u64) -> Self {
+        Self(std::sync::atomic::AtomicU64::new(done))
+    }
+
+    /// Particle-substeps counted so far.
+    pub fn done(&self) -> u64 {
+        self.0.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// When the work done has reached `budget` (billions of particle-substeps; `None`: no
+    /// limit): a note saying so, for a stage's log.
+    pub fn spent(&self, budget: Option<f64>) -> Option<String> {
+        let budget = budget?;
+        let done = self.done() as f64 / 1e9;
+        (done >= budget).then(|| {
+            format!(
+                "the work budget is spent ({done:.2} of {budget} billion particle-substeps, `budget`)"
+            )
+        })
+    }
+
+    fn add(work: Option<&Self>, particles: usize, substeps: usize) {
+        if let Some(w) = work {
+            w.0.fetch_add(
+                (particles as u64).saturating_mul(substeps as u64),
+                std::sync::atomic::Ordering::Relaxed,
+            );
+        }
+    }
 }
 
 /// Per-particle elastic moduli of a solid (one entry per simulated particle).
@@ -391,6 +433,7 @@ impl ModelVisitor for Visit<'_, '_> {
             sim.set_dt(dt).map_err(sim_err(frame))?;
             let t0 = f64::from(frame - 1) * frame_dt;
             substeps.push(n);
+            Work::add(r.work, n_all, n);
             if !grads {
                 sim.run(&mut state, &mat, t0, n).map_err(sim_err(frame))?;
                 frame_loss.push(loss.frame(frame, &state, None)?);
@@ -409,6 +452,7 @@ impl ModelVisitor for Visit<'_, '_> {
                 kept.push((frame, tape, n, seed));
                 continue;
             }
+            Work::add(r.work, n_all, n);
             let g = sim
                 .backward(
                     &tape,
@@ -450,6 +494,7 @@ impl ModelVisitor for Visit<'_, '_> {
                     seed.add_assign(&c);
                 }
                 sim.set_dt(frame_dt / n as f64).map_err(sim_err(frame))?;
+                Work::add(r.work, n_all, n);
                 let g = sim
                     .backward(
                         &tape,

@@ -45,10 +45,10 @@ impl std::fmt::Debug for ViewsLoss<'_> {
 impl<'a> ViewsLoss<'a> {
     /// The loss of `object` against `targets` (any frames; the background where a capture has
     /// no plate is `solid`).
-    pub fn new(
+    pub fn new<'t: 'a>(
         object: &'a Object,
         fluid: bool,
-        targets: impl IntoIterator<Item = &'a Target>,
+        targets: impl IntoIterator<Item = &'t Target>,
         weights: LossWeights,
         solid: [f32; 3],
     ) -> Self {

@@ -392,6 +392,7 @@ impl TypedStage for Evaluate {
             moduli: moduli.as_ref(),
             // Re-simulated from frame 0, as `pipe simulate` does.
             free: None,
+            work: None,
         };
         let mut gaussians = std::borrow::Cow::Borrowed(&object.gaussians);
         let colour_refit = if p.colour_epochs > 0 {

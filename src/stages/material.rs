@@ -31,7 +31,7 @@ use crate::physics::material_field::{FieldSettings, colour_of, percentiles, writ
 use crate::physics::object::{Resolution, sim_yaml};
 use crate::physics::params::{MaterialValues, Param};
 use crate::physics::rollout::{
-    FrameGradient, NextMaterial, Rollout, RolloutError, Truncate, Wants, is_fluid,
+    FrameGradient, NextMaterial, Rollout, RolloutError, Truncate, Wants, Work, is_fluid,
 };
 use crate::physics::views::{LossWeights, ViewsLoss};
 use crate::pipeline::spec::{Preset, SceneSpec};
@@ -124,6 +124,15 @@ pub struct MaterialParams {
     /// (the sample scenes were made at 0.02 m).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dx: Option<f64>,
+    /// The stage's simulation work budget, in billions of particle-substeps
+    /// ([`crate::physics::rollout::Work`]: each substep simulated counts the particles once,
+    /// each substep reversed once more): no epoch, of the global fit or of the field, starts
+    /// past it, and the stage keeps what it has learned and says so. It bounds the stage's
+    /// time on any scene (the particles follow the object's size, the substeps the material's
+    /// stiffness) and reads no clock, so a run stops at the same epoch on every machine.
+    /// Unset: no limit.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub budget: Option<f64>,
     /// Start the rollouts where the body's free flight ends (the learned rigid motion in closed
     /// form before it: [`crate::physics::free_flight::FreeFrames`]); `false` simulates every
     /// frame from frame 0.
@@ -190,6 +199,9 @@ struct Checkpoint {
     search: LineSearch,
     /// The line search has converged.
     converged: bool,
+    /// Particle-substeps simulated so far (`budget`).
+    #[serde(default)]
+    work: u64,
 }
 
 /// `material.json`.
@@ -266,7 +278,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 15;
+    const VERSION: u32 = 16;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 
@@ -279,7 +291,11 @@ impl TypedStage for MaterialStage {
             Preset::Draft => {
                 json!({"model": "global", "epochs": 5, "cells": 16, "field": {"epochs": 20}})
             }
-            Preset::Standard => json!({"epochs": 10, "cells": 24, "field": {"epochs": 40}}),
+            // The budget: ~35 min of the costliest particle-substeps measured (plasticine,
+            // 3.5e6 a second on 2 cores with its renders; a Newtonian fluid's are 3.4× cheaper).
+            Preset::Standard => json!({
+                "epochs": 10, "cells": 24, "budget": 7.0, "field": {"epochs": 40}
+            }),
             Preset::Paper => json!({
                 "epochs": 200, "cells": 48, "precision": "f64", "field": {"epochs": 200}
             }),
@@ -328,10 +344,15 @@ impl TypedStage for MaterialStage {
         if p.frames == Some(0) {
             return bad("frames", "must be at least 1".into());
         }
-        if !(p.auto.margin.is_finite() && (0.0..1.0).contains(&p.auto.margin)) {
+        if let Err((name, why)) = p.auto.check() {
+            return bad(name, why);
+        }
+        if let Some(b) = p.budget
+            && !(b.is_finite() && b > 0.0)
+        {
             return bad(
-                "auto.margin",
-                format!("must be in [0, 1), found {}", p.auto.margin),
+                "budget",
+                format!("must be > 0 (billions of particle-substeps), found {b}"),
             );
         }
         if p.model != MaterialModel::Global {
@@ -453,12 +474,14 @@ impl TypedStage for MaterialStage {
         let mut converged = false;
         let mut first_epoch = 0;
         let interrupt = ctx.interrupt_flag();
+        let mut work_done = 0;
         if let Some(ck) = ctx.resume::<Checkpoint>()
             && ck.u.len() == learned.len()
         {
-            (first_epoch, u, adam, search, converged) =
-                (ck.epoch, ck.u, ck.adam, ck.search, ck.converged);
+            (first_epoch, u, adam, search, converged, work_done) =
+                (ck.epoch, ck.u, ck.adam, ck.search, ck.converged, ck.work);
         }
+        let work = Work::starting_at(work_done);
         let cfg = AdamConfig {
             clip: p.grad_clip,
             ..Default::default()
@@ -467,17 +490,7 @@ impl TypedStage for MaterialStage {
         // While the body is in free flight its material plays no part: the rollouts start where
         // the flight ends (the learned rigid motion in closed form; not with a velocity field,
         // whose residual deforms the body).
-        let free = (p.closed_form
-            && velocity.model != crate::stages::velocity::VelocityModel::Field)
-            .then(|| {
-                crate::physics::free_flight::FreeFrames::of(
-                    &object,
-                    &velocity.rigid(&object),
-                    last,
-                    is_fluid(family),
-                )
-            })
-            .flatten();
+        let free = free_frames(p, &velocity, &object, last, is_fluid(family));
         match &free {
             Some(f) if f.frames() >= last => ctx.progress.log(&format!(
                 "material: warning: the body is in free flight over every frame fitted (1..={last}): they say nothing of its material, which stays at the guess; fit frames after it lands (`frames`), or set `closed_form: false` to fit what the simulation's numerics show of it"
@@ -499,6 +512,7 @@ impl TypedStage for MaterialStage {
             interrupt: Some(interrupt),
             moduli: None,
             free: free.as_ref(),
+            work: Some(&work),
         };
         let fail = |epoch: u32, e: RolloutError| -> StageError {
             match e {
@@ -534,6 +548,10 @@ impl TypedStage for MaterialStage {
         for epoch in first_epoch..p.epochs {
             ctx.check_interrupted()?;
             if converged {
+                break;
+            }
+            if let Some(note) = budget_spent(p, &work, "the global fit", epoch) {
+                ctx.progress.log(&note);
                 break;
             }
             let values = values_of(&u);
@@ -718,6 +736,7 @@ impl TypedStage for MaterialStage {
                     adam: adam.clone(),
                     search: search.clone(),
                     converged,
+                    work: work.done(),
                 },
             )?;
         }
@@ -767,20 +786,24 @@ impl TypedStage for MaterialStage {
                 let fitted_on = |t: &&crate::scene::targets::Target| {
                     !held.contains(&t.row.view) && t.row.frame <= fit_last
                 };
-                let mut selection = ModelSelection {
-                    kept: "global".into(),
-                    reason: String::new(),
-                    held_out_views: held.clone(),
-                    fit_views: fit_views.clone(),
-                    loss_global_held_out: None,
-                    loss_field_held_out: None,
-                    margin: p.auto.margin,
-                    fit_frames_last: fit_last,
-                    loss_global_at_field_median_held_out: None,
-                };
+                let mut selection = ModelSelection::simpler(
+                    "global",
+                    held.clone(),
+                    fit_views.clone(),
+                    p.auto.margin,
+                    fit_last,
+                );
                 match field_applies {
                     Err(e) => {
                         selection.reason = format!("no field applies: {e}");
+                        (None, Some(selection))
+                    }
+                    Ok(_) if work.spent(p.budget).is_some() => {
+                        selection.reason =
+                            "the global fit spent the work budget (`budget`): no field was fitted"
+                                .into();
+                        ctx.progress
+                            .log(&format!("material auto: {}", selection.reason));
                         (None, Some(selection))
                     }
                     Ok(_) => {
@@ -827,8 +850,39 @@ impl TypedStage for MaterialStage {
                         } else {
                             (lg, "global model")
                         };
-                        let wins;
+                        let mut wins;
                         (wins, selection.reason) = decide(simple, lf, p.auto.margin, simpler);
+                        if wins && p.auto.regrid != 1.0 {
+                            let dx = p.auto.regrid * object.body.setup.dx;
+                            ctx.progress.log(&format!(
+                                "material auto: {}; scoring both again on a grid of {dx:.4} m cells",
+                                selection.reason
+                            ));
+                            let simple_values = if lm < lg { &at_median } else { &global };
+                            let (ls2, lf2) = OtherGrid {
+                                inputs: &inputs,
+                                velocity: &velocity,
+                                guess: &guess,
+                                template: base,
+                            }
+                            .held_out_losses(
+                                p,
+                                ctx,
+                                dx,
+                                targets.iter().filter(|t| !fitted_on(t)),
+                                simple_values,
+                                &f,
+                            )?;
+                            selection.regrid_dx_m = Some(dx);
+                            selection.loss_simple_regrid_held_out = Some(ls2);
+                            selection.loss_field_regrid_held_out = Some(lf2);
+                            let (wins2, reason2) = decide(ls2, lf2, p.auto.margin, simpler);
+                            wins = wins2;
+                            selection.reason = format!(
+                                "{}; on a grid of {dx:.4} m cells: {reason2}",
+                                selection.reason
+                            );
+                        }
                         if !wins && lm < lg {
                             global = at_median;
                         }
@@ -848,6 +902,7 @@ impl TypedStage for MaterialStage {
         for (metric, value) in [
             ("wall_s_global", global_s),
             ("wall_s_field", started.elapsed().as_secs_f64() - global_s),
+            ("work_particle_substeps", work.done() as f64),
         ] {
             ctx.metric(MetricRow {
                 epoch: None,
@@ -1008,6 +1063,118 @@ impl TypedStage for MaterialStage {
 
 /// The learned values next to the scene's ground truth, when it has one.
 /// The family's values of a fitted field with E (and ν) at the median of its particles'.
+/// The frames in closed form of `object`'s rollouts (`closed_form`; not with a velocity
+/// field, whose residual deforms the body).
+fn free_frames(
+    p: &MaterialParams,
+    velocity: &VelocityResult,
+    object: &crate::physics::object::Object,
+    last: u16,
+    fluid: bool,
+) -> Option<crate::physics::free_flight::FreeFrames> {
+    (p.closed_form && velocity.model != crate::stages::velocity::VelocityModel::Field)
+        .then(|| {
+            crate::physics::free_flight::FreeFrames::of(
+                object,
+                &velocity.rigid(object),
+                last,
+                fluid,
+            )
+        })
+        .flatten()
+}
+
+/// The same object on another grid (`auto.regrid`): rebuilt from the canonical Gaussians with
+/// another cell, so its particles and their grid are drawn anew.
+struct OtherGrid<'a> {
+    inputs: &'a Inputs,
+    velocity: &'a VelocityResult,
+    guess: &'a MaterialValues,
+    /// The stage's rollout (its frames, precision and interrupt are kept).
+    template: Rollout<'a>,
+}
+
+impl OtherGrid<'_> {
+    /// The held-out losses (`targets`) of `simple` and of the field `f` (read at the new
+    /// particles' rest positions) on the grid of cell `dx` (m).
+    fn held_out_losses<'t>(
+        &self,
+        p: &MaterialParams,
+        ctx: &StageContext<'_>,
+        dx: f64,
+        targets: impl IntoIterator<Item = &'t crate::scene::targets::Target>,
+        simple: &MaterialValues,
+        f: &crate::stages::material_field::FieldFit,
+    ) -> Result<(f64, f64), StageError> {
+        let object = self.inputs.object(ctx, self.guess, Resolution::Dx(dx))?;
+        let v0 = self
+            .velocity
+            .velocities(&object, &ctx.upstream("velocity")?.dir)?;
+        let last = self.template.frames;
+        let free = free_frames(p, self.velocity, &object, last, is_fluid(self.guess.family));
+        let points: Vec<[f64; 3]> = object.body.state.x.iter().map(|x| x.to_array()).collect();
+        let moduli = f
+            .field
+            .moduli_at(&points, &f.values)
+            .map_err(|e| StageError::failed(FitError::Invalid(format!("field: {e}"))))?;
+        let mut held = ViewsLoss::new(
+            &object,
+            is_fluid(self.guess.family),
+            targets,
+            LossWeights {
+                lambda: p.lambda,
+                alpha_weight: p.alpha_weight,
+            },
+            self.inputs.background,
+        );
+        ctx.progress.log(&format!(
+            "material auto: the second grid holds {}",
+            object.particle_summary()
+        ));
+        let base = Rollout {
+            object: &object,
+            material: simple,
+            v0: &v0,
+            moduli: None,
+            free: free.as_ref(),
+            ..self.template
+        };
+        let mut run = |r: Rollout<'_>| {
+            r.run(&mut held, Wants::Loss)
+                .map(|o| o.loss())
+                .map_err(|e| match e {
+                    RolloutError::Interrupted => StageError::Interrupted,
+                    e => StageError::failed(FitError::Training {
+                        epoch: p.epochs,
+                        message: format!("on the second grid (`auto.regrid`): {e}"),
+                    }),
+                })
+        };
+        let ls = run(base)?;
+        let lf = run(Rollout {
+            material: &f.values,
+            moduli: Some(&moduli),
+            ..base
+        })?;
+        Ok((ls, lf))
+    }
+}
+
+/// When `p.budget` is spent by the `work` done: the note the stage logs, naming the phase
+/// that stops and the epochs it had done.
+pub(crate) fn budget_spent(
+    p: &MaterialParams,
+    work: &Work,
+    phase: &str,
+    epochs_done: u32,
+) -> Option<String> {
+    work.spent(p.budget).map(|note| {
+        format!(
+            "material: {note}: {phase} stops after {epochs_done} epoch(s), with what it has learned"
+        )
+    })
+}
+
 fn at_field_median(f: &crate::stages::material_field::FieldFit) -> MaterialValues {
     let log_e: Vec<f64> = f.moduli.e.iter().map(|e| e.log10()).collect();
     let mut m = f.values.clone();

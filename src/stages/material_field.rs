@@ -140,6 +140,13 @@ pub(crate) fn fit(
     let mut losses = Vec::new();
     for epoch in 0..epochs {
         ctx.check_interrupted()?;
+        if let Some(note) = base
+            .work
+            .and_then(|w| crate::stages::material::budget_spent(p, w, "the field", epoch))
+        {
+            ctx.progress.log(&note);
+            break;
+        }
         let (mut cur_values, mut cur_moduli) = (values.clone(), moduli.clone());
         let (before_w, before_u) = (field.field.to_flat(), u.clone());
         let out = {

@@ -29,9 +29,36 @@ pub struct AutoSettings {
     /// rounded up; 0 holds out views only).
     #[serde(default)]
     pub held_out_frames: Option<u16>,
+    /// A field that wins is scored again on the same object rebuilt on a grid whose cell is
+    /// this many times as large (particles resampled, the field read at their rest
+    /// positions), and kept only when it wins there too: a gain that depends on the
+    /// discretisation (a bounce that happens to land nearer the truth) is not a property of
+    /// the object. 1 skips the check.
+    #[serde(default = "regrid")]
+    pub regrid: f64,
 }
 
 impl AutoSettings {
+    /// The setting at fault (`auto.margin`, `auto.regrid`) and why.
+    pub fn check(&self) -> Result<(), (&'static str, String)> {
+        if !(self.margin.is_finite() && (0.0..1.0).contains(&self.margin)) {
+            return Err((
+                "auto.margin",
+                format!("must be in [0, 1), found {}", self.margin),
+            ));
+        }
+        if !(self.regrid.is_finite() && (0.5..=2.0).contains(&self.regrid)) {
+            return Err((
+                "auto.regrid",
+                format!(
+                    "must be in [0.5, 2] (1 skips the second grid), found {}",
+                    self.regrid
+                ),
+            ));
+        }
+        Ok(())
+    }
+
     /// The frames held out of `1..=last`.
     pub fn held_out_frames(&self, last: u16) -> u16 {
         self.held_out_frames
@@ -43,12 +70,17 @@ fn margin() -> f64 {
     0.02
 }
 
+fn regrid() -> f64 {
+    1.2
+}
+
 impl Default for AutoSettings {
     fn default() -> Self {
         Self {
             held_out_views: None,
             margin: margin(),
             held_out_frames: None,
+            regrid: regrid(),
         }
     }
 }
@@ -76,6 +108,41 @@ pub struct ModelSelection {
     /// instead of the global fit when lower, and the field must beat the lower of the two.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub loss_global_at_field_median_held_out: Option<f64>,
+    /// The cell (m) of the second grid the field was scored on (`auto.regrid`), when it won
+    /// on the first, and the held-out losses there of the simpler model and of the field.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub regrid_dx_m: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loss_simple_regrid_held_out: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loss_field_regrid_held_out: Option<f64>,
+}
+
+impl ModelSelection {
+    /// The simpler model `kept`, decided on `held_out_views` for a field fitted on `fit_views`
+    /// and frames `1..=fit_frames_last`, with no reason or loss recorded yet.
+    pub fn simpler(
+        kept: &str,
+        held_out_views: Vec<u16>,
+        fit_views: Vec<u16>,
+        margin: f64,
+        fit_frames_last: u16,
+    ) -> Self {
+        Self {
+            kept: kept.into(),
+            reason: String::new(),
+            held_out_views,
+            fit_views,
+            loss_global_held_out: None,
+            loss_field_held_out: None,
+            margin,
+            fit_frames_last,
+            loss_global_at_field_median_held_out: None,
+            regrid_dx_m: None,
+            loss_simple_regrid_held_out: None,
+            loss_field_regrid_held_out: None,
+        }
+    }
 }
 
 /// The held-out views among `train` (sorted, distinct): `asked`, checked, or every fourth from

@@ -228,6 +228,7 @@ fn rollout_of<'a>(
         interrupt: None,
         moduli,
         free: None,
+        work: None,
     }
 }
 
@@ -1086,6 +1087,56 @@ fn a_killed_material_stage_resumes_to_the_same_result() {
     }
 }
 
+/// `material.budget`: no epoch starts once the stage's simulation work passes the budget
+/// (here any work, so one epoch runs), the stage keeps what that epoch learned and records its
+/// work, and the same run without a budget goes on: the same first epoch, more work. (Frames
+/// 1–4 of the demo are in free flight: `closed_form: false` simulates them, so that the
+/// material has a gradient.)
+#[test]
+fn a_material_budget_stops_the_descent_once_spent() {
+    let stages = |budget: &str| {
+        format!(
+            "  ingest: {{frames: [0, 1, 2, 3, 4]}}\n  init: {{}}\n  warmup: {{epochs: 20}}\n  \
+             velocity: {{epochs: 2, frames: 3, cells: 10}}\n  \
+             material: {{model: global, epochs: 3, cells: 10, probe: 0, closed_form: false, \
+             guess: {{E: 3.0e5}}{budget}}}\n"
+        )
+    };
+    let metrics = |budget: &str| {
+        let dir = tempfile::tempdir().unwrap();
+        let file = demo_pipeline(dir.path(), "draft", &stages(budget));
+        run_builtin(dir.path(), &file, None);
+        let m: pipe::scene::metrics::Metrics =
+            pipe::scene::table::read(&entry(dir.path(), &file, "material").join("metrics.arrow"))
+                .unwrap();
+        m.rows
+    };
+    let epochs = |rows: &[pipe::pipeline::stage::MetricRow]| -> Vec<(u32, f64)> {
+        rows.iter()
+            .filter(|r| r.metric == "loss")
+            .map(|r| (r.epoch.unwrap(), r.value))
+            .collect()
+    };
+    let work = |rows: &[pipe::pipeline::stage::MetricRow]| {
+        rows.iter()
+            .find(|r| r.metric == "work_particle_substeps")
+            .map(|r| r.value)
+            .unwrap()
+    };
+    let (free, spent) = (metrics(""), metrics(", budget: 1.0e-12"));
+    let (e_free, e_spent) = (epochs(&free), epochs(&spent));
+    println!("epochs without a budget {e_free:?}, with one {e_spent:?}");
+    assert_eq!(e_spent.len(), 1, "one epoch under the budget: {e_spent:?}");
+    assert!(e_free.len() > 1, "more without it: {e_free:?}");
+    assert_eq!(e_spent[0], e_free[0], "the same first epoch");
+    let (w_free, w_spent) = (work(&free), work(&spent));
+    println!("work {w_spent:.4e} / {w_free:.4e} particle-substeps");
+    assert!(
+        w_spent.is_finite() && w_spent > 0.0 && w_spent < w_free,
+        "work {w_spent} against {w_free}"
+    );
+}
+
 /// Every file under `dir`.
 fn walk(dir: &std::path::Path) -> Vec<PathBuf> {
     let mut out = Vec::new();
@@ -1419,6 +1470,7 @@ fn a_rollout_started_where_the_free_flight_ends_matches_the_one_from_frame_0() {
     let mut squared = SquaredLoss(LinearLoss::new(&object));
     let cut = Rollout {
         free: Some(&free),
+        work: None,
         ..rollout_of(&object, &values, &v0, frames, None)
     }
     .run(&mut squared, Wants::LossUpTo(0.0))
