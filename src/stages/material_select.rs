@@ -265,6 +265,43 @@ mod tests {
     }
 
     #[test]
+    fn bad_auto_settings_are_named() {
+        assert!(AutoSettings::default().check().is_ok());
+        for (auto, field) in [
+            (
+                AutoSettings {
+                    margin: 1.0,
+                    ..AutoSettings::default()
+                },
+                "auto.margin",
+            ),
+            (
+                AutoSettings {
+                    regrid: 3.0,
+                    ..AutoSettings::default()
+                },
+                "auto.regrid",
+            ),
+            (
+                AutoSettings {
+                    regrid: f64::NAN,
+                    ..AutoSettings::default()
+                },
+                "auto.regrid",
+            ),
+        ] {
+            let (name, why) = auto.check().unwrap_err();
+            assert_eq!(name, field, "{why}");
+            assert!(why.contains("found"), "{why}");
+        }
+        let skip = AutoSettings {
+            regrid: 1.0,
+            ..AutoSettings::default()
+        };
+        assert!(skip.check().is_ok(), "1 skips the second grid");
+    }
+
+    #[test]
     fn the_field_must_win_by_the_margin() {
         assert!(field_wins(1.0, 0.97, 0.02));
         assert!(!field_wins(1.0, 0.99, 0.02));
