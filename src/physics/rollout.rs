@@ -192,6 +192,16 @@ impl Work {
         })
     }
 
+    /// Checks a stage's `budget` (billions of particle-substeps): finite and > 0 when set.
+    pub fn check_budget(budget: Option<f64>) -> Result<(), String> {
+        match budget {
+            Some(b) if !(b.is_finite() && b > 0.0) => Err(format!(
+                "must be > 0 (billions of particle-substeps), found {b}"
+            )),
+            _ => Ok(()),
+        }
+    }
+
     fn add(work: Option<&Self>, particles: usize, substeps: usize) {
         if let Some(w) = work {
             w.0.fetch_add(

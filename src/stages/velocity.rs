@@ -330,13 +330,8 @@ impl TypedStage for Velocity {
         if let Err((name, why)) = p.auto.check() {
             return bad(name, why);
         }
-        if let Some(b) = p.budget
-            && !(b.is_finite() && b > 0.0)
-        {
-            return bad(
-                "budget",
-                format!("must be > 0 (billions of particle-substeps), found {b}"),
-            );
+        if let Err(why) = Work::check_budget(p.budget) {
+            return bad("budget", why);
         }
         if matches!(p.model, VelocityModel::Field | VelocityModel::Auto) {
             if let Err(e) = p.field.config().validate() {
