@@ -392,6 +392,9 @@ pub fn sim_yaml(
     let _ = writeln!(t, "gravity: {}", vec3(scene.gravity));
     let _ = writeln!(t, "frame_dt: {}", num(frame_dt));
     let _ = writeln!(t, "grid_dx: {}", num(grid_dx));
+    if let Some(n) = scene.prefer_substeps {
+        let _ = writeln!(t, "prefer_substeps: {n}");
+    }
     if let Some(f) = fill_interior {
         let _ = writeln!(t, "fill_interior: {f}");
     }

@@ -606,9 +606,16 @@ pub fn frame_step<M: Constitutive>(
                 speed,
             });
         }
+        // A synthetic capture's own step (`prefer_substeps`) where a fixed count may take it.
+        let (n, reason) = match spec.prefer_substeps {
+            Some(p) if preferred_step_is_stable(&stable, frame_dt, p, max_speed, body.setup.dx) => {
+                (p as usize, "prefer_substeps")
+            }
+            _ => (n, stable.limit()),
+        };
         return Ok(FrameStep {
             substeps: n,
-            reason: stable.limit(),
+            reason,
             stable,
             max_speed,
             speed,
@@ -688,7 +695,7 @@ pub const MAX_SUBSTEPS_PER_FRAME: usize = 1_000_000;
 pub struct FrameStep {
     /// Substeps it takes.
     pub substeps: usize,
-    /// Why: `"user"` or the binding limit.
+    /// Why: `"user"`, `"prefer_substeps"` or the binding limit of the automatic count.
     pub reason: &'static str,
     /// The stability limits at the frame's start.
     pub stable: StableStep,
@@ -698,6 +705,20 @@ pub struct FrameStep {
     pub speed: f64,
     /// The fixed count is above the limit (`allow_unstable`).
     pub unstable: bool,
+}
+
+/// Whether `substeps` a frame of `frame_dt` (s) keep within the limits of a user-fixed count
+/// (CFL number ≤ 0.5, the viscous limit, and no particle crossing a cell of `dx` m at
+/// `max_speed` m/s in a substep).
+fn preferred_step_is_stable(
+    stable: &StableStep,
+    frame_dt: f64,
+    substeps: u32,
+    max_speed: f64,
+    dx: f64,
+) -> bool {
+    let dt = frame_dt / f64::from(substeps);
+    stable.check(dt).is_ok() && max_speed * dt <= dx
 }
 
 /// What the run produced.

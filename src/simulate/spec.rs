@@ -32,7 +32,10 @@
 //!
 //! Other keys: `domain: {min: [..], max: [..]}` (m; default: see [`super::setup`]),
 //! `substeps` (a fixed count per frame; refused above the stability limit unless
-//! `allow_unstable: true`), `fill_interior` (`true`/`false`; default: fill when the cloud is
+//! `allow_unstable: true`), `prefer_substeps` (that many per frame whenever a fixed count
+//! may take them, i.e. within the CFL number 0.5 and the viscous limit, else the automatic
+//! count: the step of the simulator that made a synthetic capture, since MPM's results depend
+//! on the step; not with `substeps`), `fill_interior` (`true`/`false`; default: fill when the cloud is
 //! surface-like, e.g. 3DGS splats, see [`super::fill`]), `splat_filter` (m, ≥ 0; default 0:
 //! the rasterizer's low-pass filter in the images a 3DGS PLY was fitted to, `√0.3 · depth /
 //! focal`, added to every splat when the filling measures the surface they render),
@@ -275,6 +278,8 @@ pub struct SimSpec {
     pub boundaries: Vec<BoundarySpec>,
     /// A user-fixed substep count per frame.
     pub substeps: Option<u32>,
+    /// The substeps per frame to take whenever a fixed count may (else the automatic count).
+    pub prefer_substeps: Option<u32>,
     /// Accept a fixed `substeps` above the stability limit (with a warning).
     pub allow_unstable: bool,
     /// Fill a closed surface with particles; `None` = when the cloud is surface-like.
@@ -287,6 +292,9 @@ pub struct SimSpec {
     pub forces: Vec<ForceSpec>,
     positions: Positions,
 }
+
+/// The largest `prefer_substeps` accepted.
+pub const MAX_PREFER_SUBSTEPS: u64 = 100_000;
 
 impl SimSpec {
     /// Validates simulation-file text; `path` names it in messages.
@@ -340,6 +348,24 @@ impl SimSpec {
                 ));
             }
         };
+        let prefer_substeps = match raw.prefer_substeps {
+            None => None,
+            Some(_) if substeps.is_some() => {
+                return Err(ctx.bad(
+                    "prefer_substeps",
+                    &raw.prefer_substeps.unwrap_or_default().to_string(),
+                    "cannot be given with `substeps` (a fixed count); keep one of them",
+                ));
+            }
+            Some(n) if (1..=MAX_PREFER_SUBSTEPS).contains(&n) => Some(n as u32),
+            Some(n) => {
+                return Err(ctx.bad(
+                    "prefer_substeps",
+                    &n.to_string(),
+                    &format!("must be an integer from 1 to {MAX_PREFER_SUBSTEPS}"),
+                ));
+            }
+        };
         for (key, v) in [
             ("initial_velocity", Some(raw.initial_velocity)),
             ("angular_velocity", Some(raw.angular_velocity)),
@@ -376,6 +402,7 @@ impl SimSpec {
             domain,
             boundaries,
             substeps,
+            prefer_substeps,
             allow_unstable: raw.allow_unstable,
             fill_interior: raw.fill_interior,
             splat_filter,
@@ -507,6 +534,8 @@ struct RawSpec {
     boundaries: Vec<Value>,
     #[serde(default)]
     substeps: Option<u64>,
+    #[serde(default)]
+    prefer_substeps: Option<u64>,
     #[serde(default)]
     allow_unstable: bool,
     #[serde(default)]

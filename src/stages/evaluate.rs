@@ -230,13 +230,9 @@ impl TypedStage for Evaluate {
     }
 
     fn scene_key(&self, scene: &SceneSpec) -> Value {
-        json!({
-            "material": scene.material,
-            "density": scene.density,
-            "gravity": scene.gravity,
-            "boundaries": scene.boundaries,
-            "test_views": scene.test_views,
-        })
+        let mut key = scene.physics_key();
+        key["test_views"] = json!(scene.test_views);
+        key
     }
 
     fn validate(&self, p: &EvaluateParams) -> Result<(), ParamError> {

@@ -36,7 +36,9 @@ use crate::physics::rollout::{
 use crate::physics::views::{LossWeights, ViewsLoss};
 use crate::pipeline::spec::{Preset, SceneSpec};
 use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
-use crate::stages::material_select::{AutoSettings, ModelSelection, decide, split_views};
+use crate::stages::material_select::{
+    AutoSettings, ModelSelection, decide, decide_again, field_wins, split_views,
+};
 use crate::stages::velocity::{VelocityResult, check_family_guess, check_guess};
 
 /// How the material varies over the object.
@@ -278,7 +280,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 16;
+    const VERSION: u32 = 18;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 
@@ -303,12 +305,7 @@ impl TypedStage for MaterialStage {
     }
 
     fn scene_key(&self, scene: &SceneSpec) -> Value {
-        json!({
-            "material": scene.material,
-            "density": scene.density,
-            "gravity": scene.gravity,
-            "boundaries": scene.boundaries,
-        })
+        scene.physics_key()
     }
 
     fn validate(&self, p: &MaterialParams) -> Result<(), ParamError> {
@@ -871,15 +868,29 @@ impl TypedStage for MaterialStage {
                             selection.regrid_dx_m = Some(dx);
                             selection.loss_simple_regrid_held_out = Some(ls2);
                             selection.loss_field_regrid_held_out = Some(lf2);
-                            let (wins2, reason2) = decide(ls2, lf2, p.auto.margin, simpler);
+                            let (wins2, reason2) = decide_again(
+                                (simple, lf),
+                                (ls2, lf2),
+                                p.auto.margin,
+                                p.auto.regrid_keep,
+                                simpler,
+                            );
                             wins = wins2;
                             selection.reason = format!(
                                 "{}; on a grid of {dx:.4} m cells: {reason2}",
                                 selection.reason
                             );
                         }
-                        if !wins && lm < lg {
+                        // The one material at the field's median replaces the global fit
+                        // only when it wins by the margin as well (a smaller difference is
+                        // within the held-out data's noise: the global fit saw every view).
+                        if !wins && field_wins(lg, lm, p.auto.margin) {
                             global = at_median;
+                            selection.reason = format!(
+                                "{}; one material at the field's median kept: its held-out loss {lm:.5} is more than {:.1} % below the global fit's {lg:.5}",
+                                selection.reason,
+                                100.0 * p.auto.margin
+                            );
                         }
                         ctx.progress
                             .log(&format!("material auto: {}", selection.reason));

@@ -36,6 +36,12 @@ pub struct AutoSettings {
     /// the object. 1 skips the check.
     #[serde(default = "regrid")]
     pub regrid: f64,
+    /// The share of the field's relative held-out gain on its own grid that must remain on
+    /// the second grid (`regrid`): a property of the object survives a 20 % change of the
+    /// discretisation, a gain that mostly vanishes with it is the discretisation's. 0 asks
+    /// only that the field win there by `margin`.
+    #[serde(default = "regrid_keep")]
+    pub regrid_keep: f64,
 }
 
 impl AutoSettings {
@@ -56,6 +62,12 @@ impl AutoSettings {
                 ),
             ));
         }
+        if !(self.regrid_keep.is_finite() && (0.0..=1.0).contains(&self.regrid_keep)) {
+            return Err((
+                "auto.regrid_keep",
+                format!("must be in [0, 1], found {}", self.regrid_keep),
+            ));
+        }
         Ok(())
     }
 
@@ -74,6 +86,10 @@ fn regrid() -> f64 {
     1.2
 }
 
+fn regrid_keep() -> f64 {
+    0.5
+}
+
 impl Default for AutoSettings {
     fn default() -> Self {
         Self {
@@ -81,6 +97,7 @@ impl Default for AutoSettings {
             margin: margin(),
             held_out_frames: None,
             regrid: regrid(),
+            regrid_keep: regrid_keep(),
         }
     }
 }
@@ -104,8 +121,9 @@ pub struct ModelSelection {
     /// The field was fitted on frames `1..=fit_frames_last` (the later ones held out).
     #[serde(default)]
     pub fit_frames_last: u16,
-    /// The held-out loss of one material at the field's median E and ν (material only): kept
-    /// instead of the global fit when lower, and the field must beat the lower of the two.
+    /// The held-out loss of one material at the field's median E and ν (material only): the
+    /// field must beat the lower of it and the global fit's, and when the field loses it
+    /// replaces the global fit only if it beats that by the margin too.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub loss_global_at_field_median_held_out: Option<f64>,
     /// The cell (m) of the second grid the field was scored on (`auto.regrid`), when it won
@@ -225,6 +243,36 @@ pub fn decide(simple: f64, field: f64, margin: f64, simpler: &str) -> (bool, Str
     (wins, reason)
 }
 
+/// Whether the field still wins on the second grid (`auto.regrid`): by more than `margin`
+/// over the simpler model's held-out loss there (`simple2`, `field2`), and with at least
+/// `keep` of its relative gain on the first grid (`simple`, `field`); the reason in words.
+pub fn decide_again(
+    (simple, field): (f64, f64),
+    (simple2, field2): (f64, f64),
+    margin: f64,
+    keep: f64,
+    simpler: &str,
+) -> (bool, String) {
+    let (wins, reason) = decide(simple2, field2, margin, simpler);
+    let gain = 1.0 - field / simple;
+    let gain2 = 1.0 - field2 / simple2;
+    if !wins || keep == 0.0 {
+        return (wins, reason);
+    }
+    let kept = gain2 >= keep * gain;
+    let reason = format!(
+        "{reason}, {} {:.0} % of its gain on the first grid ({:.0} % of it remains)",
+        if kept {
+            "and keeps at least"
+        } else {
+            "but keeps less than"
+        },
+        100.0 * keep,
+        100.0 * gain2 / gain
+    );
+    (kept, reason)
+}
+
 /// Whether the field's held-out loss beats the global model's by more than `margin`.
 pub fn field_wins(global: f64, field: f64, margin: f64) -> bool {
     field.is_finite() && global.is_finite() && field < (1.0 - margin) * global
@@ -249,6 +297,26 @@ mod tests {
         assert!(err.contains("leaves no training view"), "{err}");
         let err = held_out_views(&[3], None).unwrap_err();
         assert!(err.contains("1 training view"), "{err}");
+    }
+
+    #[test]
+    fn a_field_must_keep_most_of_its_gain_on_the_second_grid() {
+        // The two-material bar: -51.7 % and -41.3 %; the homogeneous torus: -26 % and -6 %.
+        let (bar, why) = decide_again((1.0, 0.483), (1.0, 0.587), 0.02, 0.5, "global model");
+        assert!(bar && why.contains("keeps at least 50 %"), "{why}");
+        let (torus, why) = decide_again((0.508, 0.377), (0.490, 0.457), 0.02, 0.5, "global model");
+        assert!(!torus && why.contains("keeps less than 50 %"), "{why}");
+        assert!(why.contains("(26 % of it remains)"), "{why}");
+        let (only_margin, _) =
+            decide_again((0.508, 0.377), (0.490, 0.457), 0.02, 0.0, "global model");
+        assert!(only_margin);
+        let (lost, why) = decide_again((1.0, 0.5), (1.0, 0.99), 0.02, 0.5, "rigid motion");
+        assert!(!lost && why.contains("does not win"), "{why}");
+        let bad = AutoSettings {
+            regrid_keep: 1.5,
+            ..AutoSettings::default()
+        };
+        assert_eq!(bad.check().unwrap_err().0, "auto.regrid_keep");
     }
 
     #[test]

@@ -33,7 +33,9 @@ use crate::physics::velocity_field::{
 use crate::physics::views::{LossWeights, ViewsLoss};
 use crate::pipeline::spec::{Preset, SceneSpec};
 use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
-use crate::stages::material_select::{AutoSettings, ModelSelection, decide, split_views};
+use crate::stages::material_select::{
+    AutoSettings, ModelSelection, decide, decide_again, split_views,
+};
 use pipe_field::{AdamConfig as FieldAdamConfig, FieldAdam, LrSchedule};
 
 /// The velocity field learned.
@@ -261,7 +263,7 @@ impl VelocityResult {
 impl TypedStage for Velocity {
     type Params = VelocityParams;
     const KIND: &'static str = "velocity";
-    const VERSION: u32 = 13;
+    const VERSION: u32 = 14;
     const DESCRIPTION: &'static str = "Learn the initial velocity from the first frames (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup"];
 
@@ -286,12 +288,7 @@ impl TypedStage for Velocity {
     }
 
     fn scene_key(&self, scene: &SceneSpec) -> Value {
-        json!({
-            "material": scene.material,
-            "density": scene.density,
-            "gravity": scene.gravity,
-            "boundaries": scene.boundaries,
-        })
+        scene.physics_key()
     }
 
     fn validate(&self, p: &VelocityParams) -> Result<(), ParamError> {
@@ -690,7 +687,13 @@ impl TypedStage for Velocity {
                     let lf2 = sim_other
                         .loss(&v_field, &mut held_other, None)
                         .map_err(|e| fail(p.epochs, e))?;
-                    let (wins2, reason2) = decide(lg2, lf2, p.auto.margin, "rigid motion");
+                    let (wins2, reason2) = decide_again(
+                        (lg, lf),
+                        (lg2, lf2),
+                        p.auto.margin,
+                        p.auto.regrid_keep,
+                        "rigid motion",
+                    );
                     wins = wins2;
                     reason = format!("{reason}; on a grid of {dx:.4} m cells: {reason2}");
                     regrid = Some((dx, lg2, lf2));

@@ -87,6 +87,7 @@ fn scene(gaussians: Gaussians, e: f64, boundaries: Vec<BoundaryItem>, frame_dt: 
             density: 1000.0,
             gravity: [0.0; 3],
             boundaries,
+            prefer_substeps: None,
         },
         learned: Some(MaterialValues {
             family: MaterialFamily::Elastic,

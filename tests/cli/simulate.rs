@@ -408,6 +408,56 @@ fn pacnerf_scenes_all_frames_with_automatic_substeps() {
     }
 }
 
+/// `prefer_substeps` re-simulates a synthetic scene at its maker's step: PAC-NeRF's torus
+/// (automatic count 258–287 a frame) and plasticine blob (~120) at `prefer_substeps: 200` take
+/// exactly 200 a frame, named `prefer_substeps`, and follow the ground truth within 1e-4 m
+/// (their automatic steps end 5.5e-3 and 2.7e-3 m off,
+/// `pacnerf_scenes_all_frames_with_automatic_substeps`). Where a fixed count may not take the
+/// preferred step (CFL number above 0.5), the automatic count does; with `substeps`, or out of
+/// range, it is refused by name.
+#[test]
+fn prefer_substeps_takes_the_makers_step_where_a_fixed_count_may() {
+    for (scene, n) in &PACNERF_SCENES[..2] {
+        let text = std::fs::read_to_string(fixture(&format!("{scene}.sim.yaml"))).unwrap();
+        assert!(text.contains("substeps: 200\n"));
+        let (s, res) = pacnerf_run(
+            scene,
+            *n,
+            &text.replace("substeps: 200\n", "prefer_substeps: 200\n"),
+        );
+        for f in &s.frame_stats {
+            assert!(
+                f.substeps == 200 && f.substeps_reason == "prefer_substeps" && !f.unstable,
+                "{scene}: {f:?}"
+            );
+        }
+        for (k, c) in res {
+            assert!(c < 1e-4, "{scene} frame {k}: {c}");
+        }
+    }
+
+    let tmp = tempfile::tempdir().unwrap();
+    let block = write_ply(tmp.path(), "block.ply", &lattice(4, 0.01, [0.0, 0.5, 0.0]));
+    let sim = write_sim(tmp.path(), &format!("{EXAMPLE}prefer_substeps: 2\n"));
+    let s = simulate::run(&block, &sim, 2, &tmp.path().join("out"), &quiet()).unwrap();
+    let f = &s.frame_stats[0];
+    assert!(
+        f.substeps > 2 && f.substeps_reason != "prefer_substeps" && f.cfl_number <= 0.3 + 1e-12,
+        "{f:?}"
+    );
+
+    let (msg, _) = run_err(|t| format!("{t}substeps: 50\nprefer_substeps: 60\n"), 2);
+    assert!(
+        msg.contains("invalid `prefer_substeps` = 60") && msg.contains("with `substeps`"),
+        "{msg}"
+    );
+    let (msg, _) = run_err(|t| format!("{t}prefer_substeps: 0\n"), 2);
+    assert!(
+        msg.contains("invalid `prefer_substeps` = 0") && msg.contains("from 1 to 100000"),
+        "{msg}"
+    );
+}
+
 /// PAC-NeRF's droplet at 70 fixed substeps per frame with `allow_unstable` (CFL number 0.79):
 /// during frame 9 it blows up without a NaN (speeds ~1e19 m/s, the fluid pushed through the
 /// ground). The run stops in that frame, naming it, as soon as a grid node moves more than a

@@ -130,6 +130,15 @@ fn model_auto_keeps_a_field_that_separates_the_two_halves() {
         lf2.is_finite() && lf2 < 0.7 * ls2,
         "held out on the second grid: field {lf2}, global {ls2}"
     );
+    // Most of the gain survives the new grid (`auto.regrid_keep`, 0.5; measured 80 %).
+    let keep = (1.0 - lf2 / ls2) / (1.0 - lf / lg);
+    assert!(keep > 0.6, "{keep}: {sel}");
+    assert!(
+        sel["reason"]
+            .as_str()
+            .is_some_and(|r| r.contains("keeps at least 50 % of its gain")),
+        "{sel}"
+    );
     let e = read("evaluate", "evaluation.json");
     let parts = e["material_truth"]["parts"].as_array().unwrap();
     println!("{}", e["material_truth"]);
