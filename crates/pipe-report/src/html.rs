@@ -185,29 +185,12 @@ fn scene_section(
 ) -> Result<(), ReportError> {
     let _ = writeln!(out, "<div class=\"scene\"><h2>{}</h2>", esc(&s.name));
     out.push_str("<h3>Scene and settings</h3>\n");
-    let sc = &s.scene;
-    let field = |k: &str| text::compact(sc.get(k).unwrap_or(&Value::Null));
-    table(
-        out,
-        &["setting", "value"],
-        &[
-            vec![
-                ("pipeline file".into(), false),
-                (s.file.display().to_string(), false),
-            ],
-            vec![("preset".into(), false), (s.preset.clone(), false)],
-            vec![("dataset".into(), false), (field("dataset"), false)],
-            vec![("scene folder".into(), false), (field("path"), false)],
-            vec![
-                ("material family".into(), false),
-                (field("material"), false),
-            ],
-            vec![("test views".into(), false), (field("test_views"), false)],
-            vec![("density (kg/m³)".into(), false), (field("density"), false)],
-            vec![("gravity (m/s²)".into(), false), (field("gravity"), false)],
-            vec![("boundaries".into(), false), (field("boundaries"), false)],
-        ],
-    );
+    let rows: Vec<Vec<(String, bool)>> = s
+        .settings_rows()
+        .into_iter()
+        .map(|(k, v)| vec![(k.to_string(), false), (v, false)])
+        .collect();
+    table(out, &["setting", "value"], &rows);
     out.push_str("<h3>Stages</h3>\n");
     out.push_str("<table><thead><tr><th>stage</th><th>state</th><th>wall time (s)</th><th>peak memory (MiB)</th><th>threads</th><th>key</th><th>parameters</th></tr></thead><tbody>\n");
     for st in &s.stages {

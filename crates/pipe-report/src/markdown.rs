@@ -3,8 +3,6 @@
 
 use std::fmt::Write as _;
 
-use serde_json::Value;
-
 use crate::model::{Report, SceneReport};
 use crate::text::{self, md};
 
@@ -30,19 +28,8 @@ fn head(out: &mut String, cells: &[&str]) {
 
 fn scene(out: &mut String, s: &SceneReport) {
     let _ = writeln!(out, "\n## {}\n", s.name);
-    let field = |k: &str| text::compact(s.scene.get(k).unwrap_or(&Value::Null));
     head(out, &["setting", "value"]);
-    for (k, v) in [
-        ("pipeline file", s.file.display().to_string()),
-        ("preset", s.preset.clone()),
-        ("dataset", field("dataset")),
-        ("scene folder", field("path")),
-        ("material family", field("material")),
-        ("test views", field("test_views")),
-        ("density (kg/m³)", field("density")),
-        ("gravity (m/s²)", field("gravity")),
-        ("boundaries", field("boundaries")),
-    ] {
+    for (k, v) in s.settings_rows() {
         row(out, &[k.to_string(), v]);
     }
     out.push_str("\n### Stages\n\n");

@@ -64,6 +64,30 @@ pub struct SceneReport {
     pub figures: Vec<FigureRef>,
 }
 
+impl SceneReport {
+    /// The "Scene and settings" table's rows (setting, value), shared by the HTML and
+    /// Markdown reports.
+    pub fn settings_rows(&self) -> Vec<(&'static str, String)> {
+        let field = |k: &str| crate::text::compact(self.scene.get(k).unwrap_or(&Value::Null));
+        let substeps = match self.scene.get("prefer_substeps").and_then(Value::as_u64) {
+            Some(n) => format!("{n} a frame where a fixed count may (the maker's step)"),
+            None => "automatic (the stability limit)".into(),
+        };
+        vec![
+            ("pipeline file", self.file.display().to_string()),
+            ("preset", self.preset.clone()),
+            ("dataset", field("dataset")),
+            ("scene folder", field("path")),
+            ("material family", field("material")),
+            ("test views", field("test_views")),
+            ("density (kg/m³)", field("density")),
+            ("gravity (m/s²)", field("gravity")),
+            ("boundaries", field("boundaries")),
+            ("MPM substeps", substeps),
+        ]
+    }
+}
+
 /// One stage's state and cost.
 #[derive(Debug, Clone, Serialize)]
 pub struct StageRow {

@@ -411,6 +411,13 @@ fn report_html_embeds_every_image_and_plot_and_names_no_url() {
         assert!(html.contains("Published numbers on other data"));
         // report.md links files that exist beside it.
         let md = std::fs::read_to_string(d.path(&format!("{dir}/report.md"))).unwrap();
+        // Both pages hold the same settings rows; the demo sets no `prefer_substeps`.
+        for page in [&html, &md] {
+            assert!(
+                page.contains("MPM substeps") && page.contains("automatic (the stability limit)"),
+                "{dir}"
+            );
+        }
         let files: Vec<String> = links.captures_iter(&md).map(|c| c[1].to_string()).collect();
         assert_eq!(files.len(), strips + gifs + figures, "{dir}");
         for f in files {
