@@ -37,7 +37,7 @@ use crate::physics::views::{LossWeights, ViewsLoss};
 use crate::pipeline::spec::{Preset, SceneSpec};
 use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
 use crate::stages::material_select::{
-    AutoSettings, ModelSelection, decide, decide_again, field_wins, split_views,
+    AutoSettings, ModelSelection, decide, decide_again, median_replaces_global, split_views,
 };
 use crate::stages::velocity::{VelocityResult, check_family_guess, check_guess};
 
@@ -881,10 +881,7 @@ impl TypedStage for MaterialStage {
                                 selection.reason
                             );
                         }
-                        // The one material at the field's median replaces the global fit
-                        // only when it wins by the margin as well (a smaller difference is
-                        // within the held-out data's noise: the global fit saw every view).
-                        if !wins && field_wins(lg, lm, p.auto.margin) {
+                        if !wins && median_replaces_global(lg, lm, p.auto.margin) {
                             global = at_median;
                             selection.reason = format!(
                                 "{}; one material at the field's median kept: its held-out loss {lm:.5} is more than {:.1} % below the global fit's {lg:.5}",
