@@ -350,10 +350,10 @@ impl SimSpec {
         };
         let prefer_substeps = match raw.prefer_substeps {
             None => None,
-            Some(_) if substeps.is_some() => {
+            Some(n) if substeps.is_some() => {
                 return Err(ctx.bad(
                     "prefer_substeps",
-                    &raw.prefer_substeps.unwrap_or_default().to_string(),
+                    &n.to_string(),
                     "cannot be given with `substeps` (a fixed count); keep one of them",
                 ));
             }

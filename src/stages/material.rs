@@ -837,10 +837,11 @@ impl TypedStage for MaterialStage {
                         selection.loss_global_held_out = Some(lg);
                         selection.loss_field_held_out = Some(lf);
                         selection.loss_global_at_field_median_held_out = Some(lm);
-                        let (simple, simpler) = if lm < lg {
-                            (lm, "global model at the field's median")
+                        // The simpler model the field must beat: the lower of the two.
+                        let (simple, simpler, simple_values) = if lm < lg {
+                            (lm, "global model at the field's median", &at_median)
                         } else {
-                            (lg, "global model")
+                            (lg, "global model", &global)
                         };
                         let mut wins;
                         (wins, selection.reason) = decide(simple, lf, p.auto.margin, simpler);
@@ -850,7 +851,6 @@ impl TypedStage for MaterialStage {
                                 "material auto: {}; scoring both again on a grid of {dx:.4} m cells",
                                 selection.reason
                             ));
-                            let simple_values = if lm < lg { &at_median } else { &global };
                             let (ls2, lf2) = OtherGrid {
                                 inputs: &inputs,
                                 velocity: &velocity,

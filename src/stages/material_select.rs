@@ -45,7 +45,7 @@ pub struct AutoSettings {
 }
 
 impl AutoSettings {
-    /// The setting at fault (`auto.margin`, `auto.regrid`) and why.
+    /// The setting at fault (`auto.margin`, `auto.regrid`, `auto.regrid_keep`) and why.
     pub fn check(&self) -> Result<(), (&'static str, String)> {
         if !(self.margin.is_finite() && (0.0..1.0).contains(&self.margin)) {
             return Err((
