@@ -142,7 +142,7 @@ pub struct Ingest;
 impl TypedStage for Ingest {
     type Params = IngestParams;
     const KIND: &'static str = "ingest";
-    const VERSION: u32 = 6;
+    const VERSION: u32 = 7;
     const DESCRIPTION: &'static str = "Read a PAC-NeRF or PhysDreamer capture, matte the object against each camera's background plate (or take the dataset's masks), write masks, composited images, the plates and frames.arrow (and a PhysDreamer scene's trained Gaussians, the moving part simulated)";
 
     fn output_schemas(&self) -> Vec<(&'static str, u32)> {

@@ -2,11 +2,13 @@
 //! torus-elastic scene down-scaled 2× by `datasets-tools downscale`, 11 cameras × 14 frames,
 //! 100×100, with its ground-truth masks). Cameras, frames, times, intrinsics and a camera centre
 //! are checked against values read independently from the JSON; the masks against the ground
-//! truth (mean IoU ≥ 0.965, min ≥ 0.935, measured 0.9689 and 0.9418; the single-view matte
+//! truth (mean IoU ≥ 0.965, min ≥ 0.935, measured 0.9691 and 0.9418; the single-view matte
 //! before made 0.9615 and 0.9170: the torus casts a dark shadow on a textured floor, which a
 //! plain colour difference mistakes for object). The composite scenes of
 //! `tests/fixtures/composite-*` (made by `datasets-tools composite`) hold the matting's hard
-//! cases; a torn mask is reported in a warning naming its camera and frame. Then each kind of
+//! cases (at the sample scenes' 200×200 the targets, mean IoU ≥ 0.95 and min ≥ 0.92;
+//! a blob lying on its shadow in its tones is not solved, and its torn masks are named); a torn
+//! mask is reported in a warning naming its camera and frame. Then each kind of
 //! broken capture must give an error naming the file and value.
 
 use crate::support::{BuiltinRun, fixture_scene};
@@ -153,8 +155,23 @@ fn fixture_scene_cameras_frames_and_masks() {
     );
 }
 
-/// `(mean, min)` of the `mask_iou` metrics `ingest` reports for a composite fixture.
-fn composite_ious(name: &str) -> (f64, f64, Vec<f64>) {
+/// Runs `run`'s pipeline with `pipe --quiet run`; it must succeed. Returns its stderr.
+fn quiet_run(run: &BuiltinRun) -> String {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_pipe"))
+        .arg("--workdir")
+        .arg(run.dir.path())
+        .args(["--quiet", "run"])
+        .arg(&run.file)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "{stderr}");
+    stderr
+}
+
+/// `(mean, min)` of the `mask_iou` metrics `ingest` reports for a composite fixture of
+/// `images` images, and all per-image values.
+fn composite_ious(name: &str, images: usize) -> (f64, f64, Vec<f64>) {
     let scene = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("tests/fixtures")
         .join(name);
@@ -167,15 +184,17 @@ fn composite_ious(name: &str) -> (f64, f64, Vec<f64>) {
         .filter(|r| r.metric == "mask_iou")
         .map(|r| r.value)
         .collect();
-    assert_eq!(per_image.len(), 44);
+    assert_eq!(per_image.len(), images);
+    assert!(per_image.iter().all(|v| v.is_finite()), "{per_image:?}");
     (get("mask_iou_mean"), get("mask_iou_min"), per_image)
 }
 
 /// A dark grey torus (its levels those of the floor's grout) over the tiled floor, with its
-/// shadow: measured mean 0.9726, min 0.9573 (single-view matte: 0.9706, 0.8811).
+/// shadow, at the sample scenes' 200×200: measured mean 0.9846, min 0.9736 (single-view matte:
+/// 0.9778, 0.8900).
 #[test]
 fn dark_object_over_grout_lines_meets_the_iou_target() {
-    let (mean, min, all) = composite_ious("composite-dark-grey");
+    let (mean, min, all) = composite_ious("composite-dark-grey", 44);
     assert!(
         mean >= 0.95 && min >= 0.92,
         "mean {mean:.4}, min {min:.4}: {all:?}"
@@ -183,16 +202,56 @@ fn dark_object_over_grout_lines_meets_the_iou_target() {
 }
 
 /// A torus textured with the floor's colour dimmed to shadow tones (every object pixel over the
-/// floor passes the per-pixel shadow test): measured mean 0.9168, min 0.8414 (single-view
-/// matte: 0.0102, 0.0; multi-view without the graph cut: 0.8548, 0.6969). Below the issue's
-/// target (0.95, 0.92): per frame 0.944, 0.932, 0.883, 0.908 (frames 0, 5, 9, 13).
+/// floor passes the per-pixel shadow test), at the sample scenes' 200×200: measured mean
+/// 0.9672, min 0.9222 (single-view matte: 0.0161, 0.0; the multi-view matte before the reach
+/// test, the texture term and the witnesses' vote: 0.9426, 0.8807).
 #[test]
-fn shadow_toned_object_is_mostly_found() {
-    let (mean, min, all) = composite_ious("composite-shadow-greys");
+fn shadow_toned_object_meets_the_iou_target() {
+    let (mean, min, all) = composite_ious("composite-shadow-greys", 44);
     assert!(
-        mean >= 0.91 && min >= 0.84,
+        mean >= 0.95 && min >= 0.92,
         "mean {mean:.4}, min {min:.4}: {all:?}"
     );
+}
+
+/// What the matting does not solve is reported: a plasticine blob in the floor's shadow tones
+/// (100×100, light (−0.5, −1, 0.3)) falls, then lies flattened on its own shadow, which no
+/// camera sees past it. In the air (frame 0) its masks are found (measured mean 0.975); on the
+/// ground (frames 6 and 12) they are torn (0.20 and 0.15), and every torn frame is named in the
+/// warning by the masks' low agreement with the other cameras.
+#[test]
+fn a_shadow_toned_blob_on_its_shadow_is_torn_and_named() {
+    let scene =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/composite-blob-shadow-greys");
+    let run = BuiltinRun::new(&scene, "[]", "standard", "  ingest: {}\n");
+    let stderr = quiet_run(&run);
+    let m: Metrics = table::read(&run.entry("ingest").join("metrics.arrow")).unwrap();
+    let of = |metric: &str, frame: u16| -> Vec<(u16, f64)> {
+        m.rows
+            .iter()
+            .filter(|r| r.metric == metric && r.frame == Some(frame))
+            .map(|r| (r.view.unwrap(), r.value))
+            .collect()
+    };
+    let iou0 = of("mask_iou", 0);
+    assert_eq!(iou0.len(), 11);
+    let mean0 = iou0.iter().map(|v| v.1).sum::<f64>() / 11.0;
+    assert!(mean0 >= 0.95, "frame 0: {iou0:?}");
+    assert!(of("mask_agreement", 0).iter().all(|a| a.1 >= 0.7));
+    for frame in [6, 12] {
+        let torn: Vec<u16> = of("mask_agreement", frame)
+            .iter()
+            .filter(|a| a.1 < 0.7)
+            .map(|a| a.0)
+            .collect();
+        assert!(torn.len() >= 6, "frame {frame}: {torn:?}");
+        for view in torn {
+            assert!(
+                stderr.contains(&format!("camera {view} frame {frame}:")),
+                "camera {view} frame {frame} not named: {stderr}"
+            );
+        }
+    }
 }
 
 /// A torn mask (ground-truth masks, one of them half erased) is named in a warning, also with
@@ -240,15 +299,7 @@ fn torn_mask_is_reported_by_camera_and_frame() {
     )
     .unwrap();
     let run = BuiltinRun::new(dir.path(), "[]", "standard", "  ingest: {matte: gt}\n");
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_pipe"))
-        .arg("--workdir")
-        .arg(run.dir.path())
-        .args(["--quiet", "run"])
-        .arg(&run.file)
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "{stderr}");
+    let stderr = quiet_run(&run);
     assert!(
         stderr.contains("warning:") && stderr.contains("camera 3 frame 0"),
         "{stderr}"

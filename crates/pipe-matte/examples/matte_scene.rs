@@ -209,6 +209,14 @@ fn set(params: &mut MultiViewParams, kv: &str) -> Result<(), String> {
         "cut_shadow_cost" => params.cut_shadow_cost = v.parse().map_err(|e| bad(&e))?,
         "cut_agree_cost" => params.cut_agree_cost = v.parse().map_err(|e| bad(&e))?,
         "cut_pull" => params.cut_pull = v.parse().map_err(|e| bad(&e))?,
+        "texture_radius" => params.texture_radius = v.parse().map_err(|e| bad(&e))?,
+        "texture_min_plate_variance" => {
+            params.texture_min_plate_variance = v.parse().map_err(|e| bad(&e))?
+        }
+        "texture_split" => params.texture_split = v.parse().map_err(|e| bad(&e))?,
+        "texture_scale" => params.texture_scale = v.parse().map_err(|e| bad(&e))?,
+        "shadow_max_zenith_deg" => params.shadow_max_zenith_deg = v.parse().map_err(|e| bad(&e))?,
+        "cut_texture_cost" => params.cut_texture_cost = v.parse().map_err(|e| bad(&e))?,
         "witness_tolerance" => params.witness_tolerance = v.parse().map_err(|e| bad(&e))?,
         "witness_noise_factor" => params.witness_noise_factor = v.parse().map_err(|e| bad(&e))?,
         "witness_min_disagree" => params.witness_min_disagree = v.parse().map_err(|e| bad(&e))?,

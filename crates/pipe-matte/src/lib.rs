@@ -33,8 +33,10 @@ mod maxflow;
 pub(crate) mod morphology;
 mod multiview;
 mod params;
+mod reach;
 mod refine;
 mod score;
+mod texture;
 mod view;
 mod witness;
 

@@ -95,6 +95,24 @@ pub struct MultiViewParams {
     /// A pull also needs the pixel's ray to meet the hull of the other views' changed pixels
     /// this many voxels above the ground (a contact shadow's ray meets it lower).
     pub witness_min_height: f64,
+    /// Half-width (pixels) of the window in which `texture.rs` fits the planes that ask
+    /// whether the plate's texture shows through a shadow-like pixel.
+    pub texture_radius: usize,
+    /// A window whose plate, detrended, varies less than this (variance of the log-intensity)
+    /// has no texture to show: its pixel gets no texture term (nor does a pixel whose own
+    /// plate residual is below the window's standard deviation).
+    pub texture_min_plate_variance: f32,
+    /// Score of the plate's texture in the image (`texture.rs`: 1 shown at full contrast, 0
+    /// hidden) at which the texture term changes sign: below it object, above it shadow.
+    pub texture_split: f32,
+    /// Score difference over which the texture term reaches its full weight.
+    pub texture_scale: f32,
+    /// Full weight of the texture term in the cost of labelling a shadow-like pixel object
+    /// (0 disables it).
+    pub cut_texture_cost: f32,
+    /// Largest angle of the light from the vertical, degrees: the object's shadow falls no
+    /// farther from a point at height `h` than `h · tan` of it (`reach.rs`).
+    pub shadow_max_zenith_deg: f64,
 }
 
 impl Default for MultiViewParams {
@@ -108,7 +126,7 @@ impl Default for MultiViewParams {
             photo_tolerance: 8,
             hull_grid: 64,
             hull_max_misses: 0,
-            cut_rounds: 2,
+            cut_rounds: 3,
             cut_smoothness: 0.8,
             cut_evidence_cost: 2.0,
             cut_shadow_cost: 5.0,
@@ -118,6 +136,12 @@ impl Default for MultiViewParams {
             witness_noise_factor: 0.5,
             witness_min_disagree: 3,
             witness_min_height: 3.0,
+            texture_radius: 2,
+            texture_min_plate_variance: 0.002,
+            texture_split: 0.5,
+            texture_scale: 0.3,
+            cut_texture_cost: 2.0,
+            shadow_max_zenith_deg: 75.0,
         }
     }
 }

@@ -84,6 +84,9 @@ pub(crate) fn witnesses(
             block.push((g, l));
         }
     }
+    if block.is_empty() {
+        return out;
+    }
     for (b, vb) in views.iter().enumerate() {
         if b == a || vb.camera.project(centre).is_none() {
             continue;

@@ -175,7 +175,7 @@ fn shadow_toned_sphere_is_found_and_its_shadow_is_not() {
         .collect();
     let mean = ious.iter().sum::<f64>() / ious.len() as f64;
     let min = ious.iter().copied().fold(f64::INFINITY, f64::min);
-    // Measured: mean 0.947, min 0.914 (a 64-pixel image of a sphere has a coarse outline).
+    // Measured: mean 0.951, min 0.929 (a 64-pixel image of a sphere has a coarse outline).
     eprintln!("multi-view IoU mean {mean:.4}, min {min:.4}: {ious:?}");
     assert!(mean >= 0.93 && min >= 0.9, "{ious:?}");
     // No shadow pixel far from the sphere's outline is taken for object.
@@ -279,7 +279,8 @@ fn scores(masks: &[Mask], truth: &[Mask]) -> (f64, f64) {
 
 /// The sphere 2 cm above the floor, in front of its own shadow for the low cameras: the
 /// per-pixel and multi-view tests leave its lower part for shadow; the graph cut, pulled by
-/// the views that see the ground behind it dimmed otherwise, fills it.
+/// the views that see the ground behind it dimmed otherwise, fills it. Measured: 0.921/0.890
+/// without the cut, 0.944/0.910 with it (mean/min).
 #[test]
 fn graph_cut_fills_a_shadow_toned_object_close_to_its_shadow() {
     let s = scene_at(DVec3::new(0.0, RADIUS + 0.02, 0.0));
