@@ -29,9 +29,9 @@
 //!
 //! Measured (`examples/matte_scene.rs`, README; mean/min IoU, composites at the sample scenes'
 //! 200²): the sample scenes' IoU rises by 0.003–0.007, a dark object over grout lines of its
-//! own grey reaches 0.985/0.975 (0.978/0.890 single-view), an object in the floor's shadow tones
-//! 0.969/0.929 (0.016/0.0 single-view). A flattened blob of the shadow's tones lying on its own
-//! shadow is not solved (0.49/0.11 at 100²): its masks' low agreement is what `ingest` warns
+//! own grey reaches 0.985/0.974 (0.978/0.890 single-view), an object in the floor's shadow tones
+//! 0.967/0.922 (0.016/0.0 single-view). A flattened blob of the shadow's tones lying on its own
+//! shadow is not solved (0.44/0.02 at 100²): its masks' low agreement is what `ingest` warns
 //! about.
 
 use glam::DVec3;

@@ -21,8 +21,9 @@ use rayon::prelude::*;
 use crate::view::RgbImageView;
 
 /// Per pixel (row-major), the score `r` of the module doc over the window's pixels that `used`
-/// admits, or `None` where the pixel is no feature of the plate, the window holds fewer than 9
-/// used pixels, or it does not fit in the image (`radius` ≥ 1 pixels; shrunk symmetrically near
+/// admits, or `None` where the pixel itself is not used or is no feature of the plate, the
+/// window holds fewer than 9 used pixels, `used` or `plate` does not match `image`'s size, or
+/// the window does not fit in the image (`radius` ≥ 1 pixels; shrunk symmetrically near
 /// the border, at least 1). `k` is the log-ratio offset.
 pub(crate) fn plate_texture_shown(
     image: &RgbImageView<'_>,
@@ -33,6 +34,10 @@ pub(crate) fn plate_texture_shown(
     min_plate_variance: f32,
 ) -> Vec<Option<f32>> {
     let (w, h) = (image.width(), image.height());
+    let mut out = vec![None; w * h];
+    if used.len() != w * h || (plate.width(), plate.height()) != (w, h) {
+        return out;
+    }
     let k = k.max(f32::MIN_POSITIVE);
     let log_mean = |d: &[u8]| -> Vec<f32> {
         d.chunks_exact(3)
@@ -40,13 +45,12 @@ pub(crate) fn plate_texture_shown(
             .collect()
     };
     let (li, lb) = (log_mean(image.data()), log_mean(plate.data()));
-    let mut out = vec![None; w * h];
     out.par_chunks_mut(w.max(1))
         .enumerate()
         .for_each(|(y, row)| {
             for (x, o) in row.iter_mut().enumerate() {
                 let r = radius.min(x).min(y).min(w - 1 - x).min(h - 1 - y);
-                if r == 0 {
+                if r == 0 || !used[y * w + x] {
                     continue;
                 }
                 *o = shown(&li, &lb, used, w, x, y, r, min_plate_variance);
