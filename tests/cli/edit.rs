@@ -580,7 +580,8 @@ fn the_edit_stage_renders_gifs_plys_and_edit_json_per_named_edit() {
 /// compression at 2E is 35–65 % lower, and after the release it comes back to within 20 % of
 /// the peak (measured on the torus learned from the matte of ingest v7: 16 % at E and 13 % at
 /// 2E, a slip plane 13 % and 10 %; on the previous matte's torus 1–2 %: a residual compression
-/// of 0.7 mm that stays from 0.5 s to 0.7 s, not explained yet).
+/// of 0.7 mm that stays from 0.5 s to 0.7 s, not explained yet; a plane the body may leave lets
+/// it tumble away after the release, 34 mm thicker along the first axis).
 #[test]
 fn learned_demo_torus_pressed_compresses_recovers_and_twice_as_stiff_compresses_about_half() {
     let stages = "  ingest: {matte: plate}\n  init: {source: visual_hull}\n  warmup: {frames: [0]}\n  \
