@@ -125,20 +125,16 @@ pub fn matte_frame(views: &[View<'_>], params: &MultiViewParams) -> Result<Frame
         .into_par_iter()
         .map(|a| votes.without(a, 0))
         .collect();
+    let raised: Vec<Vec<bool>> = (0..views.len())
+        .into_par_iter()
+        .map(|a| raised_pixels(&views[a].camera, &evidence[a], &others[a], params))
+        .collect();
     let reach = ShadowReach::new(&votes.within(0), params.shadow_max_zenith_deg);
     let definite: Vec<Vec<bool>> = definite
         .into_par_iter()
         .enumerate()
         .map(|(a, mut bits)| {
-            reach_test(
-                a,
-                views,
-                &evidence[a],
-                &others[a],
-                &reach,
-                &mut bits,
-                params,
-            );
+            reach_test(&views[a].camera, &raised[a], &reach, &mut bits);
             bits
         })
         .collect();
@@ -166,7 +162,7 @@ pub fn matte_frame(views: &[View<'_>], params: &MultiViewParams) -> Result<Frame
         .map(|a| Proofs {
             proven: &definite[a],
             settled: &settled[a],
-            others: &others[a],
+            raised: &raised[a],
         })
         .collect();
     let masks = crate::refine::refine(views, &evidence, &proofs, masks, params);
@@ -175,30 +171,35 @@ pub fn matte_frame(views: &[View<'_>], params: &MultiViewParams) -> Result<Frame
     Ok(FrameMatte { masks, agreement })
 }
 
-/// Step 2b: a shadow-like pixel of view `a` is object when its ray meets `others` (the hull of
-/// the other views' changed pixels) at least `witness_min_height` voxels above the ground and
-/// the ground point behind it is out of reach of the object's shadow (`reach.rs`).
-fn reach_test(
-    a: usize,
-    views: &[View<'_>],
-    e: &Evidence,
-    others: &Hull,
-    reach: &ShadowReach,
-    bits: &mut [bool],
-    p: &MultiViewParams,
-) {
-    let cam = &views[a].camera;
+/// Per pixel of a view seen by `cam`: whether it is shadow-like and its ray meets `others`
+/// (the hull of the other views' changed pixels) at least `witness_min_height` voxels above the
+/// ground: an object may stand there (a contact shadow's ray meets that hull lower). The reach
+/// test and the witnesses ask it; computed once per frame.
+fn raised_pixels(cam: &Pinhole, e: &Evidence, others: &Hull, p: &MultiViewParams) -> Vec<bool> {
     let w = cam.width as usize;
     let min_height = p.witness_min_height * others.voxel;
+    e.class
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            *c == Class::ShadowLike
+                && others
+                    .front(cam, ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5))
+                    .is_some_and(|q| q.y >= min_height)
+        })
+        .collect()
+}
+
+/// Step 2b: a raised pixel (see [`raised_pixels`]) not yet proven is object when the ground
+/// point behind it is out of reach of the object's shadow (`reach.rs`).
+fn reach_test(cam: &Pinhole, raised: &[bool], reach: &ShadowReach, bits: &mut [bool]) {
+    let w = cam.width as usize;
     for (i, bit) in bits.iter_mut().enumerate() {
-        if *bit || e.class[i] != Class::ShadowLike {
+        if *bit || !raised[i] {
             continue;
         }
         let (u, v) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
-        let Some(g) = cam.ground_point(u, v) else {
-            continue;
-        };
-        if others.front(cam, (u, v)).is_some_and(|q| q.y >= min_height) && !reach.reaches(g) {
+        if cam.ground_point(u, v).is_some_and(|g| !reach.reaches(g)) {
             *bit = true;
         }
     }

@@ -61,8 +61,9 @@ pub(crate) struct Proofs<'a> {
     /// the object's own tone cannot fake (photo-consistency can: a shadow may match an object
     /// of its colour).
     pub settled: &'a [bool],
-    /// The hull of the other views' changed pixels.
-    pub others: &'a Hull,
+    /// Shadow-like and met by the hull of the other views' changed pixels high enough above
+    /// the ground for an object to stand there (`multiview::raised_pixels`).
+    pub raised: &'a [bool],
 }
 
 /// Runs `p.cut_rounds` rounds on `masks` (one per view); `proofs` holds each view's proofs.
@@ -174,14 +175,11 @@ fn unary(
     texture: &[Option<f32>],
     p: &MultiViewParams,
 ) -> Unary {
-    let cam = &views[a].camera;
-    let w = cam.width as usize;
     let n = evidence.class.len();
     let mut u = Unary {
         object: vec![0.0; n],
         background: vec![0.0; n],
     };
-    let min_height = p.witness_min_height * proofs.others.voxel;
     for i in 0..n {
         let class = evidence.class[i];
         let proven = proofs.proven[i];
@@ -195,20 +193,13 @@ fn unary(
             p.cut_shadow_cost
         };
         if class == Class::ShadowLike {
-            if !proofs.settled[i] {
-                let (x, y) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
-                if proofs
-                    .others
-                    .front(cam, (x, y))
-                    .is_some_and(|q| q.y >= min_height)
-                {
-                    let seen = witnesses(a, i, views, proofs.settled, occluders, p);
-                    cost += if proven {
-                        overturn_term(seen, p)
-                    } else {
-                        witness_term(seen, p)
-                    };
-                }
+            if !proofs.settled[i] && proofs.raised[i] {
+                let seen = witnesses(a, i, views, proofs.settled, occluders, p);
+                cost += if proven {
+                    overturn_term(seen, p)
+                } else {
+                    witness_term(seen, p)
+                };
             }
             if let Some(Some(rho)) = texture.get(i) {
                 cost += texture_term(*rho, p);
