@@ -1,12 +1,15 @@
 //! A first estimate of the initial velocity from the masks alone: the centre of each frame's
 //! visual hull (its training views' masks carved, [`crate::scene::visual_hull`]) moves as
 //! `c(t) = c₀ + v t + g t²/2` while the object flies; a least-squares fit of `c₀` and `v` over
-//! the first frames gives `v`. It costs a few carvings, and the `velocity` stage starts its
-//! gradient descent from it instead of from rest.
+//! the first frames gives `v`. The hulls' second moments turn with the object: the rotation
+//! that carries the first hull's principal axes onto each later one's gives a first angular
+//! velocity, when the axes can be told apart. It costs a few carvings, and the `velocity`
+//! stage starts its gradient descent from it instead of from rest.
 
 use std::path::Path;
 
-use glam::DVec3;
+use glam::{DMat3, DQuat, DVec3};
+use pipe_mpm::svd::svd3;
 
 use crate::io::image;
 use crate::scene::camera::Camera;
@@ -16,14 +19,28 @@ use crate::scene::visual_hull::{MaskedView, carve};
 /// Voxels across the carving box.
 const RESOLUTION: usize = 48;
 
-/// The hull centre (m) of each frame of `frames` that has training views, from the masks of
-/// `rows` (paths relative to `dir`, an `ingest` entry), with the time (s) of the frame; and the
-/// largest voxel edge (m) of those hulls.
-pub fn hull_centres(
+/// Relative gap each pair of a hull's principal second moments must keep for its axes to be
+/// told apart: a ball, a cube or a disc about its axis turns without its moments showing it.
+pub const AXIS_GAP: f64 = 0.15;
+
+/// One frame's visual hull, as the first estimates read it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HullSample {
+    /// Time of the frame (s).
+    pub time_s: f64,
+    /// Centre of the hull's voxels (m).
+    pub centre: DVec3,
+    /// Covariance of the voxel centres (m²): the hull's second moments, which turn with it.
+    pub covariance: DMat3,
+}
+
+/// The hull of each frame of `frames` that has training views, from the masks of `rows`
+/// (paths relative to `dir`, an `ingest` entry); and the largest voxel edge (m) of those hulls.
+pub fn hull_samples(
     dir: &Path,
     rows: &[FrameRow],
     frames: &[u16],
-) -> Result<(Vec<(f64, DVec3)>, f64), image::ImageError> {
+) -> Result<(Vec<HullSample>, f64), image::ImageError> {
     let mut out = Vec::new();
     let mut voxel = 0.0f64;
     for &f in frames {
@@ -48,11 +65,92 @@ pub fn hull_centres(
         if hull.centres.is_empty() {
             continue;
         }
-        let c = hull.centres.iter().sum::<DVec3>() / hull.centres.len() as f64;
-        out.push((mine[0].time_s, c));
+        out.push(HullSample {
+            time_s: mine[0].time_s,
+            centre: centroid(&hull.centres),
+            covariance: covariance(&hull.centres),
+        });
         voxel = voxel.max(hull.voxel);
     }
     Ok((out, voxel))
+}
+
+fn centroid(x: &[DVec3]) -> DVec3 {
+    x.iter().sum::<DVec3>() / x.len() as f64
+}
+
+/// The covariance of the points `x` (m²).
+fn covariance(x: &[DVec3]) -> DMat3 {
+    let c = centroid(x);
+    let mut m = DMat3::ZERO;
+    for p in x {
+        let d = *p - c;
+        m += DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+    }
+    m * (1.0 / x.len() as f64)
+}
+
+/// The principal axes of `covariance` as the columns of a rotation, largest moment first;
+/// `None` when two moments are within [`AXIS_GAP`] of each other (or the matrix is not
+/// finite).
+fn principal_axes(covariance: &DMat3) -> Option<DMat3> {
+    let svd = svd3(covariance);
+    let s = svd.s.abs();
+    let apart = |a: f64, b: f64| a > 0.0 && (a - b) >= AXIS_GAP * a;
+    if !(s.is_finite() && apart(s.x, s.y) && apart(s.y, s.z)) {
+        return None;
+    }
+    let u = svd.u;
+    Some(if u.determinant() < 0.0 {
+        DMat3::from_cols(u.x_axis, u.y_axis, -u.z_axis)
+    } else {
+        u
+    })
+}
+
+/// The angular velocity (rad/s) of the rotations `R_k` that carry the first sample's principal
+/// axes onto each later sample's, fitted by least squares to `θ_k = ω (t_k − t_0)` (`θ_k`:
+/// the rotation vector of `R_k`; over a few frames a spinning body's ω barely precesses). Of
+/// the four ways an axis frame maps onto another (an axis' sign is arbitrary), each frame
+/// takes the one nearest the previous frame's rotation, so the samples must be close enough
+/// in time that the body turns by less than a right angle between them. `None` with fewer
+/// than two samples or when a hull's axes cannot be told apart ([`AXIS_GAP`]).
+pub fn fit_angular_velocity(samples: &[HullSample]) -> Option<DVec3> {
+    let (first, rest) = samples.split_first()?;
+    if rest.is_empty() {
+        return None;
+    }
+    let axes0 = principal_axes(&first.covariance)?;
+    let mut previous = DMat3::IDENTITY;
+    let (mut num, mut den) = (DVec3::ZERO, 0.0);
+    for s in rest {
+        let axes = principal_axes(&s.covariance)?;
+        let closeness = |r: &DMat3| {
+            r.x_axis.dot(previous.x_axis)
+                + r.y_axis.dot(previous.y_axis)
+                + r.z_axis.dot(previous.z_axis)
+        };
+        let r = [
+            [1.0, 1.0, 1.0],
+            [1.0, -1.0, -1.0],
+            [-1.0, 1.0, -1.0],
+            [-1.0, -1.0, 1.0],
+        ]
+        .into_iter()
+        .map(|signs| axes * DMat3::from_diagonal(DVec3::from_array(signs)) * axes0.transpose())
+        .max_by(|a, b| closeness(a).total_cmp(&closeness(b)))?;
+        previous = r;
+        let (axis, angle) = DQuat::from_mat3(&r).normalize().to_axis_angle();
+        let angle = if angle > std::f64::consts::PI {
+            angle - std::f64::consts::TAU
+        } else {
+            angle
+        };
+        let dt = s.time_s - first.time_s;
+        num += axis * angle * dt;
+        den += dt * dt;
+    }
+    (den > 0.0).then(|| num / den).filter(|w| w.is_finite())
 }
 
 /// The velocity `v` (m/s) of `c(t) = c₀ + v t + g t²/2` fitted to `centres` (time s, centre m)
@@ -108,6 +206,52 @@ pub fn free_flight(centres: &[(f64, DVec3)], gravity: DVec3, tolerance: f64) -> 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A box's hull turned by `exp(t [ω]×)` in each frame: its moments give ω back; a cube's do
+    /// not (its axes cannot be told apart), nor does a single frame.
+    #[test]
+    fn a_spinning_boxs_moments_give_its_angular_velocity() {
+        let omega = DVec3::new(3.0, -1.0, 6.0);
+        let lattice = |half: DVec3| -> Vec<DVec3> {
+            let n = [12, 4, 8];
+            let mut x = Vec::new();
+            for i in 0..n[0] {
+                for j in 0..n[1] {
+                    for k in 0..n[2] {
+                        let f = DVec3::new(
+                            (i as f64 + 0.5) / n[0] as f64,
+                            (j as f64 + 0.5) / n[1] as f64,
+                            (k as f64 + 0.5) / n[2] as f64,
+                        );
+                        x.push((2.0 * f - 1.0) * half);
+                    }
+                }
+            }
+            x
+        };
+        let samples = |half: DVec3| -> Vec<HullSample> {
+            let body = lattice(half);
+            (0..4)
+                .map(|k| {
+                    let t = k as f64 / 24.0;
+                    let r = DMat3::from_quat(DQuat::from_scaled_axis(omega * t));
+                    let c = DVec3::new(0.1, 0.3, 0.0) + DVec3::new(0.5, 0.6, -0.2) * t;
+                    let x: Vec<DVec3> = body.iter().map(|p| c + r * *p).collect();
+                    HullSample {
+                        time_s: t,
+                        centre: centroid(&x),
+                        covariance: covariance(&x),
+                    }
+                })
+                .collect()
+        };
+        let bar = samples(DVec3::new(0.2, 0.05, 0.1));
+        let w = fit_angular_velocity(&bar).unwrap();
+        assert!((w - omega).length() < 1e-9 * omega.length(), "{w}");
+        assert!(fit_angular_velocity(&bar[..1]).is_none());
+        assert!(fit_angular_velocity(&samples(DVec3::splat(0.1))).is_none());
+        assert!(fit_angular_velocity(&samples(DVec3::new(0.2, 0.1, 0.1))).is_none());
+    }
 
     #[test]
     fn a_thrown_centre_gives_its_velocity() {

@@ -196,8 +196,11 @@ pub struct VelocityResult {
     /// The particles' mass-weighted mean velocity (m/s): what a simulation file's
     /// `initial_velocity` takes.
     pub initial_velocity: [f64; 3],
-    /// Where the descent started (m/s).
+    /// Where the descent started (m/s), and its angular velocity (rad/s; the hulls' turn, or
+    /// zero).
     pub start_velocity: [f64; 3],
+    #[serde(default)]
+    pub start_angular_velocity: [f64; 3],
     /// How the start was found.
     pub init: VelocityInit,
     /// Frames used (`0..frames`).
@@ -263,7 +266,7 @@ impl VelocityResult {
 impl TypedStage for Velocity {
     type Params = VelocityParams;
     const KIND: &'static str = "velocity";
-    const VERSION: u32 = 14;
+    const VERSION: u32 = 15;
     const DESCRIPTION: &'static str = "Learn the initial velocity from the first frames (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup"];
 
@@ -364,13 +367,15 @@ impl TypedStage for Velocity {
         // thrown; the fit below stops there too.
         let g = DVec3::from_array(ctx.scene.gravity);
         let mut in_free_flight = false;
-        let start_v = match p.init {
-            VelocityInit::Zero => DVec3::ZERO,
+        let (start_v, start_w) = match p.init {
+            VelocityInit::Zero => (DVec3::ZERO, None),
             VelocityInit::Hull => {
                 let frames: Vec<u16> = (0..=last).collect();
-                let (centres, voxel) =
-                    track::hull_centres(&inputs.ingest_dir, &inputs.frames.rows, &frames)
+                let (samples, voxel) =
+                    track::hull_samples(&inputs.ingest_dir, &inputs.frames.rows, &frames)
                         .map_err(StageError::failed)?;
+                let centres: Vec<(f64, DVec3)> =
+                    samples.iter().map(|s| (s.time_s, s.centre)).collect();
                 let k = track::free_flight(&centres, g, 2.0 * voxel);
                 if k >= 2 && k < centres.len() {
                     let free = (k - 1) as u16;
@@ -381,16 +386,20 @@ impl TypedStage for Velocity {
                     last = last.min(free.max(1));
                 }
                 in_free_flight = k >= 2 && usize::from(last) < k;
-                track::fit_velocity(&centres[..k], g).unwrap_or(DVec3::ZERO)
+                (
+                    track::fit_velocity(&centres[..k], g).unwrap_or(DVec3::ZERO),
+                    track::fit_angular_velocity(&samples[..k]),
+                )
             }
         };
         let material = MaterialValues::guess(inputs.family, ctx.scene.density, &p.guess);
         check_family_guess(&material, &p.guess, ctx.name)?;
         let object = inputs.object(ctx, &material, Resolution::of(p.cells, p.dx))?;
         let centre = object.centre_of_mass().to_array();
+        let spins = !matches!(p.model, VelocityModel::Translation);
         let start_motion = RigidVelocity {
             linear: start_v.to_array(),
-            angular: [0.0; 3],
+            angular: start_w.filter(|_| spins).unwrap_or(DVec3::ZERO).to_array(),
             centre,
         };
         let targets = inputs.train_targets(last)?;
@@ -482,6 +491,34 @@ impl TypedStage for Velocity {
                     sim.loss(&rigid(x).field(&object), loss, Some(up_to))
                 }
             };
+        // The hulls' turn (`track::fit_angular_velocity`) is a second start, kept when it fits
+        // the frames better than no spin: a tumbling throw turns by tens of degrees over the
+        // fitted frames, and a descent from rest takes three times the epochs to find it.
+        if dims == 6
+            && first_epoch == 0
+            && let Some(w) = start_w
+        {
+            let mut spun = x.clone();
+            spun[3..].copy_from_slice(&(w * radius).to_array());
+            let still = rigid_loss(&x, f64::INFINITY, &mut loss).map_err(|e| fail(0, e))?;
+            let turned = rigid_loss(&spun, f64::INFINITY, &mut loss).map_err(|e| fail(0, e))?;
+            let keep = turned < still;
+            ctx.progress.log(&format!(
+                "velocity: the hulls turn at [{:.2}, {:.2}, {:.2}] rad/s: loss {turned:.5} against {still:.5} without spin; {}",
+                w.x,
+                w.y,
+                w.z,
+                if keep {
+                    "the descent starts there"
+                } else {
+                    "the descent starts without spin"
+                }
+            ));
+            if keep {
+                x = spun;
+                start = x.clone();
+            }
+        }
         ctx.progress.start("epoch", u64::from(p.epochs));
         ctx.progress.inc(u64::from(first_epoch));
         // The loss after each epoch's step: three epochs that gain less than 0.1 % end the fit.
@@ -749,6 +786,11 @@ impl TypedStage for Velocity {
             centre_of_mass: centre,
             initial_velocity: mean_v.to_array(),
             start_velocity: [start[0], start[1], start[2]],
+            start_angular_velocity: if dims == 6 {
+                [start[3] / radius, start[4] / radius, start[5] / radius]
+            } else {
+                [0.0; 3]
+            },
             init: p.init,
             frames: p.frames,
             loss_start,
