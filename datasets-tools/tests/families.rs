@@ -6,31 +6,11 @@
 //! are the family's and finite, the material fit lowers its loss, and the re-simulated views
 //! are close to the captured ones.
 
-use std::path::Path;
-use std::process::Command;
+mod generated;
 
-use pipe::pipeline::progress::{Mode, Reporter};
-use pipe::pipeline::runner::{RunOptions, Workspace};
-use pipe::pipeline::spec::{self, Overrides};
 use serde_json::Value;
 
-fn generate(dst: &Path, family: &str, args: &[&str]) {
-    let o = Command::new(env!("CARGO_BIN_EXE_datasets-tools"))
-        .arg("scene")
-        .arg(dst)
-        .args([
-            "--family", family, "--size", "40", "--frames", "6", "--views", "5",
-        ])
-        .args(["--spacing", "0.03", "--supersample", "2"])
-        .args(args)
-        .output()
-        .unwrap();
-    assert!(
-        o.status.success(),
-        "{family}: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-}
+use generated::{Run, generate};
 
 #[test]
 fn every_family_runs_from_images_to_a_scored_result() {
@@ -92,35 +72,33 @@ fn every_family_runs_from_images_to_a_scored_result() {
         ),
     ] {
         let root = dir.path().join(family);
-        generate(&root.join("scene"), family, args);
-        let file = root.join("p.yaml");
-        std::fs::write(
-            &file,
-            format!(
+        let common = [
+            "--family",
+            family,
+            "--size",
+            "40",
+            "--frames",
+            "6",
+            "--views",
+            "5",
+            "--spacing",
+            "0.03",
+            "--supersample",
+            "2",
+        ];
+        generate(&root.join("scene"), &[&common[..], args].concat());
+        let run = Run::new(
+            &root,
+            &format!(
                 "name: {family}\nscene:\n  dataset: pacnerf\n  path: scene\n  test_views: [4]\n  \
                  material: {family}\npreset: draft\nstages:\n  ingest: {{matte: plate}}\n  \
                  init: {{source: visual_hull}}\n  warmup: {{frames: [0], epochs: 30}}\n  \
                  velocity: {{model: rigid, epochs: 3}}\n  material: {{model: global, epochs: 2}}\n  \
                  evaluate: {{}}\n"
             ),
-        )
-        .unwrap();
-        let reg = pipe::stages::builtin();
-        let p = spec::load(&file, &reg, &Overrides::default()).unwrap();
-        let ws = Workspace::new(&root);
-        ws.run(
-            &p,
-            &reg,
-            &RunOptions::default(),
-            &Reporter::new(Mode::Quiet),
-            &std::sync::atomic::AtomicBool::new(false),
-            "test",
-        )
-        .unwrap_or_else(|e| panic!("{family}: {e}"));
-        let read = |stage: &str, name: &str| -> Value {
-            let entry = ws.cached_entry(&p, &reg, stage).unwrap();
-            serde_json::from_slice(&std::fs::read(entry.join(name)).unwrap()).unwrap()
-        };
+            family,
+        );
+        let read = |stage: &str, name: &str| -> Value { run.json(stage, name) };
         let m = read("material", "material.json");
         assert_eq!(m["family"], family);
         for key in learned {

@@ -6,70 +6,53 @@
 //! find only the spin about y: [−0.04, 0.00, 5.56], 3.1 rad/s off (on the 100×100 version the
 //! hull's linear start but no spin left 0.76 of the 3 rad/s about the long axis).
 
-use std::path::Path;
-use std::process::Command;
+mod generated;
 
-use pipe::pipeline::progress::{Mode, Reporter};
-use pipe::pipeline::runner::{RunOptions, Workspace};
-use pipe::pipeline::spec::{self, Overrides};
-use serde_json::Value;
+use generated::{Run, generate};
 
-fn generate(dst: &Path) {
-    let o = Command::new(env!("CARGO_BIN_EXE_datasets-tools"))
-        .arg("scene")
-        .arg(dst)
-        .args([
+#[test]
+fn a_tumbling_throws_spin_is_learned_from_the_hulls_turn() {
+    let dir = tempfile::tempdir().unwrap();
+    generate(
+        &dir.path().join("scene"),
+        &[
             "--family",
             "elastic",
             "--youngs-modulus",
             "5e5",
             "--poisson-ratio",
             "0.3",
-        ])
-        .args(["--shape", "bar", "--extent", "0.4,0.1,0.2"])
-        .args([
+            "--shape",
+            "bar",
+            "--extent",
+            "0.4,0.1,0.2",
             "--drop-height",
             "0.3",
             "--v0",
             "0.5,0.6,-0.2",
             "--spin",
             "3,1,6",
-        ])
-        .args(["--size", "48", "--frames", "5", "--views", "6"])
-        .args(["--spacing", "0.025", "--supersample", "2"])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-}
-
-#[test]
-fn a_tumbling_throws_spin_is_learned_from_the_hulls_turn() {
-    let dir = tempfile::tempdir().unwrap();
-    generate(&dir.path().join("scene"));
-    let file = dir.path().join("p.yaml");
-    std::fs::write(
-        &file,
+            "--size",
+            "48",
+            "--frames",
+            "5",
+            "--views",
+            "6",
+            "--spacing",
+            "0.025",
+            "--supersample",
+            "2",
+        ],
+    );
+    let run = Run::new(
+        dir.path(),
         "name: tumbling\nscene:\n  dataset: pacnerf\n  path: scene\n  test_views: [5]\n  \
          material: elastic\npreset: draft\nstages:\n  ingest: {matte: plate}\n  \
          init: {source: visual_hull}\n  warmup: {frames: [0], epochs: 30}\n  \
          velocity: {model: rigid}\n",
-    )
-    .unwrap();
-    let reg = pipe::stages::builtin();
-    let p = spec::load(&file, &reg, &Overrides::default()).unwrap();
-    let ws = Workspace::new(dir.path());
-    ws.run(
-        &p,
-        &reg,
-        &RunOptions::default(),
-        &Reporter::new(Mode::Quiet),
-        &std::sync::atomic::AtomicBool::new(false),
-        "test",
-    )
-    .unwrap();
-    let entry = ws.cached_entry(&p, &reg, "velocity").unwrap();
-    let v: Value =
-        serde_json::from_slice(&std::fs::read(entry.join("velocity.json")).unwrap()).unwrap();
+        "tumbling",
+    );
+    let v = run.json("velocity", "velocity.json");
     let vec3 = |key: &str| -> [f64; 3] { serde_json::from_value(v[key].clone()).unwrap() };
     let err = |a: [f64; 3], b: [f64; 3]| {
         a.iter()
