@@ -149,6 +149,9 @@ fn closed_form() -> bool {
 fn probe_spin() -> bool {
     true
 }
+fn converged_default() -> bool {
+    true
+}
 fn frames() -> u16 {
     4
 }
@@ -213,6 +216,9 @@ pub struct VelocityResult {
     pub start_angular_velocity: [f64; 3],
     /// How the start was found.
     pub init: VelocityInit,
+    /// Whether the descent converged (or stalled) before `epochs` ran out.
+    #[serde(default = "converged_default")]
+    pub converged: bool,
     /// Frames used (`0..frames`).
     pub frames: u16,
     /// Loss at the start and at the learned velocity.
@@ -626,6 +632,21 @@ impl TypedStage for Velocity {
                 },
             )?;
         }
+        // A descent cut short by `epochs` while the loss still falls leaves a velocity the
+        // material stage then has to explain: say so.
+        let n = losses.len();
+        let cut_short = !converged && first_epoch + n as u32 == p.epochs && n >= 2;
+        if cut_short {
+            let k = n.min(4);
+            let (then, now) = (losses[n - k], losses[n - 1]);
+            ctx.progress.log(&format!(
+                "velocity: warning: the descent had not converged after {} epochs (the loss still fell {:.1} % over the last {}); raise stages.{}.epochs",
+                p.epochs,
+                100.0 * (then - now) / then.abs().max(f64::MIN_POSITIVE),
+                k - 1,
+                ctx.name
+            ));
+        }
         if closed && !free_flight::touches_nothing(&object, &rigid(&x), last) {
             ctx.progress.log(&format!(
                 "velocity: warning: the learned motion comes within two grid cells of a boundary by frame {last}, which the closed form does not see; set stages.{}.closed_form: false to simulate it",
@@ -817,6 +838,7 @@ impl TypedStage for Velocity {
                 [0.0; 3]
             },
             init: p.init,
+            converged: !cut_short,
             frames: p.frames,
             loss_start,
             loss_final,
