@@ -282,7 +282,7 @@ impl VelocityResult {
 impl TypedStage for Velocity {
     type Params = VelocityParams;
     const KIND: &'static str = "velocity";
-    const VERSION: u32 = 16;
+    const VERSION: u32 = 17;
     const DESCRIPTION: &'static str = "Learn the initial velocity from the first frames (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup"];
 
@@ -889,11 +889,17 @@ impl TypedStage for Velocity {
 /// Turns per frame interval (degrees) the spin probes try about each axis, both ways.
 const PROBE_DEGREES: [f64; 4] = [5.0, 10.0, 20.0, 40.0];
 
+/// Least relative fall of the loss for a spin probe to move the start: a ball without texture
+/// looks the same whatever its spin, and a spin taken on a rounding difference would roll it
+/// once it lands.
+const PROBE_GAIN: f64 = 0.02;
+
 /// Coordinate probes of the angular velocity: for x, y and z in turn, from the best point so
 /// far, the spins that turn the body by [`PROBE_DEGREES`] per frame interval `frame_dt` (s)
 /// either way are added to `x` (the rigid motion's optimiser coordinates: linear velocity,
-/// then the angular one times `radius`), and the lowest `loss` is kept. Returns the best point
-/// and its loss (`x` and `from` when nothing fits better).
+/// then the angular one times `radius`), and the lowest `loss` is kept when it is at least
+/// [`PROBE_GAIN`] below the best so far. Returns the best point and its loss (`x` and `from`
+/// when nothing fits better).
 fn probe_spins<E>(
     x: &[f64],
     from: f64,
@@ -903,13 +909,13 @@ fn probe_spins<E>(
 ) -> Result<(Vec<f64>, f64), E> {
     let (mut best, mut best_loss) = (x.to_vec(), from);
     for axis in 0..3 {
-        let base = best.clone();
+        let (base, base_loss) = (best.clone(), best_loss);
         for degrees in PROBE_DEGREES {
             for sign in [-1.0, 1.0] {
                 let mut trial = base.clone();
                 trial[3 + axis] += sign * degrees.to_radians() / frame_dt * radius;
                 let l = loss(&trial)?;
-                if l < best_loss {
+                if l < best_loss && l < base_loss * (1.0 - PROBE_GAIN) {
                     (best, best_loss) = (trial, l);
                 }
             }
@@ -1179,5 +1185,10 @@ mod tests {
         assert_eq!(&x[..3], &start[..3]);
         let (x, best) = probe_spins(&start, 0.0, radius, dt, loss(DVec3::ZERO)).unwrap();
         assert_eq!((x.as_slice(), best), (&start[..], 0.0));
+        // A spin that fits better by a rounding difference (a ball without texture) is not
+        // taken.
+        let flat = |x: &[f64]| -> Result<f64, ()> { Ok(0.5 - 1e-9 * x[4].abs()) };
+        let (x, best) = probe_spins(&start, 0.5, radius, dt, flat).unwrap();
+        assert_eq!((x.as_slice(), best), (&start[..], 0.5));
     }
 }
