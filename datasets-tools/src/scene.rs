@@ -293,7 +293,13 @@ fn write_scene(args: &Args) -> Result<()> {
         &scratch,
         &Reporter::new(Mode::Quiet),
     )
-    .with_context(|| format!("simulating {}", sim_file.display()))?;
+    .with_context(|| {
+        format!(
+            "simulating {} (its material's keys come from the flags of the same name: \
+             youngs_modulus from --youngs-modulus, poisson_ratio from --poisson-ratio, ...)",
+            sim_file.display()
+        )
+    })?;
     let frames: Vec<Vec<DVec3>> = (0..args.frames)
         .map(|f| {
             let path = scratch.join(format!("frame_{f:04}.ply"));
