@@ -59,6 +59,9 @@ pub struct StageRun {
     pub peak_rss_bytes: Option<u64>,
     /// Worker threads it ran with.
     pub threads: Option<usize>,
+    /// The warnings it gave when it ran (from the manifest).
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 /// A PNG strip of one test view at one frame: captured | ours | 4× |captured − ours|.
@@ -144,6 +147,7 @@ pub fn collect(
             wall_s: None,
             peak_rss_bytes: None,
             threads: None,
+            warnings: Vec::new(),
         };
         match &p.state {
             StageState::Cached(m) => {
@@ -152,6 +156,7 @@ pub fn collect(
                 run.wall_s = Some(m.wall_s);
                 run.peak_rss_bytes = Some(m.peak_rss_bytes);
                 run.threads = Some(m.threads);
+                run.warnings = m.warnings.clone();
             }
             StageState::Stale(why) => {
                 run.state = "stale".into();

@@ -105,6 +105,9 @@ pub struct Manifest {
     pub threads: usize,
     /// Unix time of the commit, seconds.
     pub created_unix_s: u64,
+    /// The warnings the stage gave while it ran (the last run of a resumed stage).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 /// Why an entry cannot be used.

@@ -25,6 +25,61 @@ pub trait Progress: Send + Sync {
     }
 }
 
+/// A stage's progress: passed on to the run's reporter, its warnings also kept for the stage's
+/// manifest (so that `pipe report` shows them after the terminal has scrolled away).
+pub struct Recording<'a> {
+    inner: &'a dyn Progress,
+    warnings: Mutex<Vec<String>>,
+}
+
+impl std::fmt::Debug for Recording<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Recording")
+            .field("warnings", &self.warnings())
+            .finish()
+    }
+}
+
+impl<'a> Recording<'a> {
+    /// Passes everything on to `inner`.
+    pub fn new(inner: &'a dyn Progress) -> Self {
+        Self {
+            inner,
+            warnings: Mutex::new(Vec::new()),
+        }
+    }
+
+    /// The warnings given so far, in order.
+    pub fn warnings(&self) -> Vec<String> {
+        self.warnings.lock().expect("not poisoned").clone()
+    }
+}
+
+impl Progress for Recording<'_> {
+    fn start(&self, label: &str, total: u64) {
+        self.inner.start(label, total);
+    }
+    fn inc(&self, n: u64) {
+        self.inner.inc(n);
+    }
+    fn message(&self, msg: &str) {
+        self.inner.message(msg);
+    }
+    fn log(&self, line: &str) {
+        self.inner.log(line);
+    }
+    fn notice(&self, line: &str) {
+        self.inner.notice(line);
+    }
+    fn warn(&self, line: &str) {
+        self.warnings
+            .lock()
+            .expect("not poisoned")
+            .push(line.to_string());
+        self.inner.warn(line);
+    }
+}
+
 /// How the run talks to the user.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Mode {

@@ -396,13 +396,14 @@ impl Workspace {
             cache::reset_peak_rss();
             let start = Instant::now();
             let checkpoints = self.checkpoints(&p.name, &p.key);
+            let recording = super::progress::Recording::new(reporter);
             let mut ctx = StageContext::new(
                 &p.name,
                 &pipeline.scene,
                 &upstream,
                 inputs,
                 &tmp,
-                reporter,
+                &recording,
                 interrupt,
             )
             .with_checkpoints(&checkpoints)
@@ -448,6 +449,7 @@ impl Workspace {
                     .duration_since(std::time::UNIX_EPOCH)
                     .map(|d| d.as_secs())
                     .unwrap_or(0),
+                warnings: recording.warnings(),
             };
             let manifest = self.store.commit(&tmp, manifest)?;
             if let Err(e) = checkpoints.remove() {

@@ -277,7 +277,7 @@ pub fn run_with(
     let gaussians = gaussians.filter(|_| options.splats);
     let body = Body::new(&spec, particles, x0, &splats, frames)?;
     for w in &body.setup.warnings {
-        progress.log(&format!("warning: {w}"));
+        progress.warn(w);
     }
     let setup = body.setup.clone();
     let carriers = body.n_input;
@@ -952,7 +952,7 @@ pub fn run_frames<M: Constitutive>(
                 stable.cfl_number(dt),
                 stable.max_fixed_dt()
             );
-            progress.log(&format!("warning: {w}"));
+            progress.warn(&w);
             warnings.push(w);
         }
         let t0 = f64::from(frame - 1) * spec.frame_dt;
@@ -1001,7 +1001,7 @@ pub fn run_frames<M: Constitutive>(
                  differs from one without walls; enlarge `domain` or leave it out (the grid \
                  then follows the particles)"
             );
-            progress.log(&format!("warning: {w}"));
+            progress.warn(&w);
             warnings.push(w);
         }
         progress.message(&format!(

@@ -484,8 +484,8 @@ impl TypedStage for MaterialStage {
         // whose residual deforms the body).
         let free = free_frames(p, &velocity, &object, last, is_fluid(family));
         match &free {
-            Some(f) if f.frames() >= last => ctx.progress.log(&format!(
-                "material: warning: the body is in free flight over every frame fitted (1..={last}): they say nothing of its material, which stays at the guess; fit frames after it lands (`frames`), or set `closed_form: false` to fit what the simulation's numerics show of it"
+            Some(f) if f.frames() >= last => ctx.progress.warn(&format!(
+                "material: the body is in free flight over every frame fitted (1..={last}): they say nothing of its material, which stays at the guess; fit frames after it lands (`frames`), or set `closed_form: false` to fit what the simulation's numerics show of it"
             )),
             Some(f) => ctx.progress.log(&format!(
                 "material: the body is in free flight until frame {}: the rollouts start there (frames 1..={} in closed form)",

@@ -639,8 +639,8 @@ impl TypedStage for Velocity {
         if cut_short {
             let k = n.min(4);
             let (then, now) = (losses[n - k], losses[n - 1]);
-            ctx.progress.log(&format!(
-                "velocity: warning: the descent had not converged after {} epochs (the loss still fell {:.1} % over the last {}); raise stages.{}.epochs",
+            ctx.progress.warn(&format!(
+                "velocity: the descent had not converged after {} epochs (the loss still fell {:.1} % over the last {}); raise stages.{}.epochs",
                 p.epochs,
                 100.0 * (then - now) / then.abs().max(f64::MIN_POSITIVE),
                 k - 1,
@@ -648,8 +648,8 @@ impl TypedStage for Velocity {
             ));
         }
         if closed && !free_flight::touches_nothing(&object, &rigid(&x), last) {
-            ctx.progress.log(&format!(
-                "velocity: warning: the learned motion comes within two grid cells of a boundary by frame {last}, which the closed form does not see; set stages.{}.closed_form: false to simulate it",
+            ctx.progress.warn(&format!(
+                "velocity: the learned motion comes within two grid cells of a boundary by frame {last}, which the closed form does not see; set stages.{}.closed_form: false to simulate it",
                 ctx.name
             ));
         }

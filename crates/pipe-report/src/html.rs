@@ -214,6 +214,18 @@ fn scene_section(
         );
     }
     out.push_str("</tbody></table>\n<p class=\"note\">Wall time from each entry's manifest (summed over the runs of a resumed stage); peak memory is the process's resident-set peak while the stage ran.</p>\n");
+    let warnings: Vec<(&str, &str)> = s
+        .stages
+        .iter()
+        .flat_map(|st| st.warnings.iter().map(|w| (st.name.as_str(), w.as_str())))
+        .collect();
+    if !warnings.is_empty() {
+        out.push_str("<h3>Warnings</h3>\n<ul class=\"warnings\">\n");
+        for (stage, w) in warnings {
+            let _ = writeln!(out, "<li><b>{}</b>: {}</li>", esc(stage), esc(w));
+        }
+        out.push_str("</ul>\n");
+    }
 
     out.push_str("<h3>Learned parameters against the ground truth</h3>\n");
     if s.parameters.is_empty() {

@@ -53,6 +53,9 @@ pub struct StageRun {
     pub peak_rss_bytes: Option<u64>,
     /// Worker threads.
     pub threads: Option<usize>,
+    /// The warnings it gave when it ran.
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 /// A strip image of one view at one frame.

@@ -66,6 +66,19 @@ fn scene(out: &mut String, s: &SceneReport) {
             ],
         );
     }
+    let warnings: Vec<String> = s
+        .stages
+        .iter()
+        .flat_map(|st| {
+            st.warnings
+                .iter()
+                .map(|w| format!("- **{}**: {w}\n", st.name))
+        })
+        .collect();
+    if !warnings.is_empty() {
+        out.push_str("\n### Warnings\n\n");
+        out.push_str(&warnings.concat());
+    }
     if !s.parameters.is_empty() {
         out.push_str("\n### Learned parameters against the ground truth\n\n");
         head(

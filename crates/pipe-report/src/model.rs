@@ -109,6 +109,8 @@ pub struct StageRow {
     pub threads: Option<usize>,
     /// Resolved parameters.
     pub params: Value,
+    /// The warnings it gave when it ran.
+    pub warnings: Vec<String>,
 }
 
 /// A learned parameter against the truth.
@@ -446,6 +448,16 @@ pub fn scene(
             peak_rss_bytes: s.peak_rss_bytes,
             threads: s.threads,
             params: s.params.clone(),
+            // A stage's own name leads many of its messages; the report names the stage.
+            warnings: s
+                .warnings
+                .iter()
+                .map(|w| {
+                    w.strip_prefix(&format!("{}: ", s.kind))
+                        .unwrap_or(w)
+                        .to_string()
+                })
+                .collect(),
         })
         .collect();
     let mut report = SceneReport {

@@ -47,7 +47,7 @@ fn pipeline(dir: &Path, name: &str, lr: f64) -> PathBuf {
     std::fs::write(
         &file,
         format!(
-            "name: {name}\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: [10]\n  material: elastic\npreset: draft\nstages:\n  ingest: {{frames: [0, 1, 2, 3, 4]}}\n  init: {{}}\n  warmup: {{epochs: 5}}\n  velocity: {{epochs: 1, frames: 3, cells: 10}}\n  material: {{model: global, epochs: 1, cells: 10, lr: {lr}}}\n  evaluate: {{}}\n",
+            "name: {name}\nscene:\n  dataset: pacnerf\n  path: {}\n  test_views: [10]\n  material: elastic\npreset: draft\nstages:\n  ingest: {{frames: [0, 1, 2, 3, 4]}}\n  init: {{}}\n  warmup: {{epochs: 5}}\n  velocity: {{epochs: 2, frames: 3, cells: 10}}\n  material: {{model: global, epochs: 1, cells: 10, lr: {lr}}}\n  evaluate: {{}}\n",
             scene.display()
         ),
     )
@@ -735,4 +735,36 @@ fn one_frames_scores_equal_pipe_loss_on_the_saved_render_and_target() {
         (mean - stated).abs() <= 1e-12 * stated,
         "{mean} vs {stated}"
     );
+}
+
+/// A stage's warnings reach its manifest and the report: two velocity epochs on the demo do
+/// not converge, which the stage says (`velocity.json` `converged: false`), and the report lists
+/// it under *Warnings* (HTML and Markdown) and in the stage's row of `report.json`.
+#[test]
+fn a_stages_warnings_are_kept_in_its_manifest_and_shown_by_the_report() {
+    let d = demo();
+    let report = d.json("auto/report.json");
+    let stages = report["scenes"][0]["stages"].as_array().unwrap();
+    let velocity = stages.iter().find(|s| s["kind"] == "velocity").unwrap();
+    let entry = d
+        .cache()
+        .join(format!("velocity-{}", velocity["key"].as_str().unwrap()));
+    assert_eq!(read_json(&entry.join("velocity.json"))["converged"], false);
+    let kept = manifest(&entry)["warnings"].clone();
+    let kept: Vec<String> = serde_json::from_value(kept).unwrap();
+    assert_eq!(kept.len(), 1, "{kept:?}");
+    assert!(kept[0].starts_with("velocity: the descent had not converged after 2 epochs"));
+    let shown: Vec<String> = serde_json::from_value(velocity["warnings"].clone()).unwrap();
+    assert_eq!(
+        shown,
+        [kept[0].trim_start_matches("velocity: ").to_string()]
+    );
+    let html = std::fs::read_to_string(d.path("auto/report.html")).unwrap();
+    assert!(html.contains("<h3>Warnings</h3>"));
+    assert!(html.contains("<li><b>velocity</b>: the descent had not converged after 2 epochs"));
+    let md = std::fs::read_to_string(d.path("auto/report.md")).unwrap();
+    assert!(md.contains("### Warnings\n\n- **velocity**: the descent had not converged"));
+    // Stages without warnings show none.
+    let evaluate = stages.iter().find(|s| s["kind"] == "evaluate").unwrap();
+    assert_eq!(evaluate["warnings"], serde_json::json!([]));
 }
