@@ -157,7 +157,27 @@ fn summary_rows(report: &Report) -> Vec<(String, Vec<String>)> {
     rows.push(row("peak memory of a stage (MiB)", &|s| {
         text::mib(Some(s.peak_rss_bytes))
     }));
+    rows.push(row(WARNINGS_LABEL, &warnings_cell));
     rows
+}
+
+/// The summary's row of stage warnings.
+pub(crate) const WARNINGS_LABEL: &str = "warnings from the stages";
+
+/// How many warnings the stages gave and which stages (listed under the scene's *Warnings*).
+pub(crate) fn warnings_cell(s: &SceneReport) -> String {
+    let stages: Vec<&str> = s
+        .stages
+        .iter()
+        .filter(|st| !st.warnings.is_empty())
+        .map(|st| st.name.as_str())
+        .collect();
+    let n: usize = s.stages.iter().map(|st| st.warnings.len()).sum();
+    if n == 0 {
+        "none".into()
+    } else {
+        format!("{n} ({}; see Warnings)", stages.join(", "))
+    }
 }
 
 fn table(out: &mut String, head: &[&str], rows: &[Vec<(String, bool)>]) {

@@ -200,6 +200,8 @@ pub fn document(report: &Report) -> String {
         text::mib(Some(s.peak_rss_bytes))
     });
     row(&mut out, &cells);
+    let cells = line(crate::html::WARNINGS_LABEL, &crate::html::warnings_cell);
+    row(&mut out, &cells);
 
     let p = &report.published;
     let _ = writeln!(

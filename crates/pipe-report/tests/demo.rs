@@ -764,6 +764,16 @@ fn a_stages_warnings_are_kept_in_its_manifest_and_shown_by_the_report() {
     assert!(html.contains("<li><b>velocity</b>: the descent had not converged after 2 epochs"));
     let md = std::fs::read_to_string(d.path("auto/report.md")).unwrap();
     assert!(md.contains("### Warnings\n\n- **velocity**: the descent had not converged"));
+    // The summary at the top counts them.
+    assert!(html.contains("warnings from the stages"));
+    let summary = md
+        .lines()
+        .find(|l| l.starts_with("| warnings from the stages |"))
+        .unwrap();
+    assert!(
+        summary.contains("velocity") && summary.contains("see Warnings"),
+        "{summary}"
+    );
     // Stages without warnings show none.
     let evaluate = stages.iter().find(|s| s["kind"] == "evaluate").unwrap();
     assert_eq!(evaluate["warnings"], serde_json::json!([]));
