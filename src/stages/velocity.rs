@@ -510,6 +510,8 @@ impl TypedStage for Velocity {
         // The hulls' turn (`track::fit_angular_velocity`) is a second start, kept when it fits
         // the frames better than no spin: a tumbling throw turns by tens of degrees over the
         // fitted frames, and a descent from rest takes three times the epochs to find it.
+        // The loss at `start`, once a start search has computed it.
+        let mut start_loss = None;
         if dims == 6
             && first_epoch == 0
             && let Some(w) = start_w
@@ -519,6 +521,7 @@ impl TypedStage for Velocity {
             let still = rigid_loss(&x, f64::INFINITY, &mut loss).map_err(|e| fail(0, e))?;
             let turned = rigid_loss(&spun, f64::INFINITY, &mut loss).map_err(|e| fail(0, e))?;
             let keep = turned < still;
+            start_loss = Some(turned.min(still));
             ctx.progress.log(&format!(
                 "velocity: the hulls turn at [{:.2}, {:.2}, {:.2}] rad/s: loss {turned:.5} against {still:.5} without spin; {}",
                 w.x,
@@ -536,10 +539,14 @@ impl TypedStage for Velocity {
             }
         }
         if dims == 6 && first_epoch == 0 && closed && p.probe_spin {
-            let from = rigid_loss(&x, f64::INFINITY, &mut loss).map_err(|e| fail(0, e))?;
+            let from = match start_loss {
+                Some(l) => l,
+                None => rigid_loss(&x, f64::INFINITY, &mut loss).map_err(|e| fail(0, e))?,
+            };
             let (probed, best) = probe_spins(&x, from, radius, inputs.frame_dt, |trial| {
                 rigid_loss(trial, f64::INFINITY, &mut loss).map_err(|e| fail(0, e))
             })?;
+            start_loss = Some(best);
             if best < from {
                 let w = rigid(&probed).angular;
                 ctx.progress.log(&format!(
@@ -657,7 +664,10 @@ impl TypedStage for Velocity {
         let eval = |x: &[f64], loss: &mut ViewsLoss<'_>| -> Result<f64, StageError> {
             rigid_loss(x, f64::INFINITY, loss).map_err(|e| fail(p.epochs, e))
         };
-        let loss_start = eval(&start, &mut loss)?;
+        let loss_start = match start_loss {
+            Some(l) => l,
+            None => eval(&start, &mut loss)?,
+        };
         let loss_rigid = eval(&x, &mut loss)?;
         let field = rigid(&x);
         let fit_field = |ctx: &mut StageContext<'_>, loss: &mut ViewsLoss<'_>| {

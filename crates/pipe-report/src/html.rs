@@ -166,17 +166,13 @@ pub(crate) const WARNINGS_LABEL: &str = "warnings from the stages";
 
 /// How many warnings the stages gave and which stages (listed under the scene's *Warnings*).
 pub(crate) fn warnings_cell(s: &SceneReport) -> String {
-    let stages: Vec<&str> = s
-        .stages
-        .iter()
-        .filter(|st| !st.warnings.is_empty())
-        .map(|st| st.name.as_str())
-        .collect();
-    let n: usize = s.stages.iter().map(|st| st.warnings.len()).sum();
-    if n == 0 {
+    let warnings = s.warnings();
+    let mut stages: Vec<&str> = warnings.iter().map(|(stage, _)| *stage).collect();
+    stages.dedup();
+    if warnings.is_empty() {
         "none".into()
     } else {
-        format!("{n} ({}; see Warnings)", stages.join(", "))
+        format!("{} ({}; see Warnings)", warnings.len(), stages.join(", "))
     }
 }
 
@@ -234,11 +230,7 @@ fn scene_section(
         );
     }
     out.push_str("</tbody></table>\n<p class=\"note\">Wall time from each entry's manifest (summed over the runs of a resumed stage); peak memory is the process's resident-set peak while the stage ran.</p>\n");
-    let warnings: Vec<(&str, &str)> = s
-        .stages
-        .iter()
-        .flat_map(|st| st.warnings.iter().map(|w| (st.name.as_str(), w.as_str())))
-        .collect();
+    let warnings = s.warnings();
     if !warnings.is_empty() {
         out.push_str("<h3>Warnings</h3>\n<ul class=\"warnings\">\n");
         for (stage, w) in warnings {

@@ -66,18 +66,12 @@ fn scene(out: &mut String, s: &SceneReport) {
             ],
         );
     }
-    let warnings: Vec<String> = s
-        .stages
-        .iter()
-        .flat_map(|st| {
-            st.warnings
-                .iter()
-                .map(|w| format!("- **{}**: {w}\n", st.name))
-        })
-        .collect();
+    let warnings = s.warnings();
     if !warnings.is_empty() {
         out.push_str("\n### Warnings\n\n");
-        out.push_str(&warnings.concat());
+        for (stage, w) in warnings {
+            let _ = writeln!(out, "- **{stage}**: {w}");
+        }
     }
     if !s.parameters.is_empty() {
         out.push_str("\n### Learned parameters against the ground truth\n\n");

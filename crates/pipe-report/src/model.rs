@@ -65,6 +65,15 @@ pub struct SceneReport {
 }
 
 impl SceneReport {
+    /// Every stage's warnings as (stage, warning), in stage order: the *Warnings* list and
+    /// the summary's count in both reports.
+    pub fn warnings(&self) -> Vec<(&str, &str)> {
+        self.stages
+            .iter()
+            .flat_map(|st| st.warnings.iter().map(|w| (st.name.as_str(), w.as_str())))
+            .collect()
+    }
+
     /// The "Scene and settings" table's rows (setting, value), shared by the HTML and
     /// Markdown reports.
     pub fn settings_rows(&self) -> Vec<(&'static str, String)> {
