@@ -11,7 +11,7 @@
 //!
 //! `datasets-tools two-material DST [--size 100] [--frames 14] [--views 11] [--ratio 30] ...`
 //! writes a generated scene of a bar whose halves differ in Young's modulus, simulated with
-//! per-particle materials and ray-traced as spheres ([`two_material`]).
+//! per-particle materials and ray-traced as the body its particles stand for ([`two_material`]).
 //!
 //! `datasets-tools physdreamer DST [--size 80] [--frames 6] [--views 4] ...` writes a generated
 //! scene in the PhysDreamer layout: a pot, a swaying leaf on it (the moving part) and a stone
@@ -91,8 +91,8 @@ enum Command {
         factor: u32,
     },
     /// Write a generated scene: a bar whose halves differ in Young's modulus (--ratio),
-    /// simulated with per-particle materials and ray-traced as shaded spheres, with its
-    /// ground truth (gt/params.json, gt/particles, gt/masks).
+    /// simulated with per-particle materials and ray-traced as the body its particles stand
+    /// for, with its ground truth (gt/params.json, gt/particles, gt/masks).
     TwoMaterial(two_material::Args),
     /// Write a generated scene in the PhysDreamer layout: a static pot, a swaying leaf on it
     /// (the moving part) and a stone beside it (clutter) as a 3DGS `point_cloud.ply`, with
@@ -101,7 +101,7 @@ enum Command {
     Physdreamer(physdreamer::Args),
     /// Write a generated scene of one homogeneous object of any material family (bar, ball or
     /// blob), dropped onto the ground, simulated by `pipe simulate`'s path and ray-traced as
-    /// shaded spheres, with its ground truth (gt/params.json, gt/particles, gt/masks,
+    /// the body its particles stand for, with its ground truth (gt/params.json, gt/particles, gt/masks,
     /// gt/scene.sim.yaml).
     Scene(scene::Args),
 }

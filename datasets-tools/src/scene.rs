@@ -7,9 +7,11 @@
 //! particles dropped with an initial velocity onto the sticky ground y = 0 and simulated by
 //! `pipe simulate`'s own path (`pipe::simulate::run`, f64, the grid following the particles,
 //! substeps from the stability limit) with the simulation file written to `gt/scene.sim.yaml`.
-//! Each frame is ray-traced as Lambert-shaded spheres, one per particle, textured by its rest
-//! position (the two-material scene's renderer and cameras: not the Gaussian rasterizer being
-//! fitted).
+//! Each frame is ray-traced as the surface of the body the particles stand for (each one's
+//! cube of the lattice, following its local deformation: `two_material::surface`),
+//! Lambert-shaded and textured by the rest position (the two-material scene's renderer and
+//! cameras: not the Gaussian rasterizer being fitted); `--sphere-radius` draws a sphere per
+//! particle instead, as this generator did before.
 //!
 //! Written: `all_data.json`, `data/r_<cam>_<frame>.png` and plates `r_<cam>_-1.png`,
 //! `gt/masks/m_<cam>_<frame>.png`, `gt/particles/<frame>.ply`, `gt/particles_rest.ply`,
@@ -27,7 +29,7 @@ use serde_json::json;
 
 use crate::two_material::cameras::Ring;
 use crate::two_material::render::Look;
-use crate::two_material::{FOV_X_DEG, FRAME_DT, bar::albedo, render_frames, to_f32};
+use crate::two_material::{Drawing, FOV_X_DEG, FRAME_DT, bar::albedo, render_frames, to_f32};
 
 /// The object's shape.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -98,9 +100,11 @@ pub struct Args {
     /// Cameras on the ring.
     #[arg(long, default_value_t = 11)]
     pub views: u16,
-    /// Radius of each particle's sphere, in lattice spacings (0.5–1.5).
-    #[arg(long, default_value_t = 0.75)]
-    pub sphere_radius: f64,
+    /// Draw each particle as a sphere of this radius, in lattice spacings (0.5–1.5), instead
+    /// of the body the particles stand for (the default; spheres of 0.75, this generator's
+    /// drawing before, show a body a quarter spacing thicker on every side).
+    #[arg(long)]
+    pub sphere_radius: Option<f64>,
     /// Samples per pixel along each axis.
     #[arg(long, default_value_t = 3)]
     pub supersample: u32,
@@ -144,13 +148,16 @@ impl Args {
                 self.supersample
             );
         }
-        if !(0.5..=1.5).contains(&self.sphere_radius) {
-            bail!(
-                "--sphere-radius {}: from 0.5 to 1.5 spacings",
-                self.sphere_radius
-            );
+        if let Some(r) = self.sphere_radius
+            && !(0.5..=1.5).contains(&r)
+        {
+            bail!("--sphere-radius {r}: from 0.5 to 1.5 spacings");
         }
         Ok(())
+    }
+
+    fn drawing(&self) -> Drawing {
+        Drawing::from_arg(self.sphere_radius, self.spacing)
     }
 
     fn extent(&self) -> DVec3 {
@@ -245,7 +252,7 @@ fn ring(args: &Args, frames: &[Vec<DVec3>]) -> Ring {
         (lo, hi) = (lo.min(*p), hi.max(*p));
     }
     lo.y = 0.0;
-    let pad = DVec3::splat(args.sphere_radius * args.spacing);
+    let pad = DVec3::splat(args.drawing().reach(args.spacing));
     let (lo, hi) = (lo - pad, hi + pad);
     let radius = 0.5 * (hi - lo).length();
     Ring {
@@ -334,9 +341,16 @@ fn write_scene(args: &Args) -> Result<()> {
         ss: args.supersample,
         ..Look::default()
     };
-    let albedos: Vec<[f64; 3]> = rest.iter().map(|p| albedo(*p)).collect();
-    let radius = args.sphere_radius * args.spacing;
-    render_frames(dst, &scene, args.size, &frames, radius, &albedos, &look)?;
+    render_frames(
+        dst,
+        &scene,
+        args.size,
+        &rest,
+        args.spacing,
+        &frames,
+        args.drawing(),
+        &look,
+    )?;
     let params = params_json(args, &rest, &frames, &summary, &ring);
     let path = dst.join("gt/params.json");
     std::fs::write(&path, serde_json::to_string_pretty(&params)?)
@@ -417,7 +431,7 @@ fn params_json(
             "sphere_radius": args.sphere_radius, "supersample": args.supersample,
         },
         "render": {
-            "renderer": "datasets-tools: ray-traced spheres, one per particle, Lambert shading; no shadows",
+            "renderer": format!("datasets-tools: {}", args.drawing().describe()),
             "W": args.size, "H": args.size, "n_cameras": args.views,
             "fov_x_deg": ring.fov_x_deg, "camera_target": ring.target.to_array(),
             "camera_distance": ring.distance,

@@ -5,14 +5,15 @@
 //! ([`bar`]), its half at rest `x < 0` with Young's modulus `E_soft` and the other half
 //! `E_stiff = ratio · E_soft` (same ν and density), is dropped with an initial velocity onto
 //! the sticky ground y = 0 and simulated by `pipe_mpm`'s neo-Hookean MPM with per-particle
-//! moduli ([`simulate`]). Each frame is drawn by a sphere ray tracer that is not the Gaussian
-//! rasterizer being fitted ([`render`]: a Lambert-shaded sphere per particle, coloured by a
-//! texture of the rest position that is the same on both halves, over a tiled floor and a
-//! round wall, no shadow) from a ring of cameras ([`cameras`]).
+//! moduli ([`simulate`]). Each frame is drawn by a ray tracer that is not the Gaussian
+//! rasterizer being fitted ([`render`]: the surface of the body the particles stand for,
+//! [`surface`], Lambert-shaded and coloured by a texture of the rest position that is the same
+//! on both halves, over a tiled floor and a round wall, no shadow; `--sphere-radius` draws a
+//! sphere per particle instead) from a ring of cameras ([`cameras`]).
 //!
 //! Written (PAC-NeRF's layout, as `pipe`'s `scene.dataset: pacnerf` reads it):
 //! `all_data.json`; `data/r_<cam>_-1.png` (plates: the backdrop alone) and
-//! `data/r_<cam>_<frame>.png`; `gt/masks/m_<cam>_<frame>.png` (the spheres' coverage, 8-bit);
+//! `data/r_<cam>_<frame>.png`; `gt/masks/m_<cam>_<frame>.png` (the body's coverage, 8-bit);
 //! `gt/particles/<frame>.ply` (positions, float32); `gt/particles_rest_color.ply` (frame 0
 //! with each particle's colour); `gt/material_particles.ply` (frame 0 with each particle's `E`
 //! and `nu`, the per-particle truth `evaluate` scores a material field against);
@@ -21,13 +22,15 @@
 //! the pipeline's error report compares a single learned E with).
 //!
 //! The output is a function of the arguments only: bit-identical across runs and thread
-//! counts (the MPM is deterministic for any thread count; the renderer is sequential).
+//! counts (the MPM is deterministic for any thread count; each sample of the renderer depends
+//! on its own ray only).
 
 pub(crate) mod bar;
 pub(crate) mod cameras;
 mod deformation;
 pub(crate) mod render;
 mod simulate;
+pub(crate) mod surface;
 
 use std::path::{Path, PathBuf};
 
@@ -86,10 +89,11 @@ pub struct Args {
     /// Initial velocity x,y,z (m/s).
     #[arg(long, value_delimiter = ',', default_values_t = [0.3, -1.0, 0.0], allow_negative_numbers = true)]
     pub v0: Vec<f64>,
-    /// Radius of each particle's sphere, in lattice spacings (0.5–1.5; ≥ ~0.6 closes the
-    /// surface).
-    #[arg(long, default_value_t = 0.7, allow_negative_numbers = true)]
-    pub sphere_radius: f64,
+    /// Draw each particle as a sphere of this radius, in lattice spacings (0.5–1.5; ≥ ~0.6
+    /// closes the surface), instead of the body the particles stand for (the default; spheres
+    /// show a body a quarter spacing thicker on every side at 0.75: see `surface`).
+    #[arg(long, allow_negative_numbers = true)]
+    pub sphere_radius: Option<f64>,
     /// Samples per pixel along each axis (anti-aliasing and soft mask edges).
     #[arg(long, default_value_t = 3)]
     pub supersample: u32,
@@ -128,11 +132,10 @@ impl Args {
         if !(1..=8).contains(&self.supersample) {
             bail!("--supersample {}: must be from 1 to 8", self.supersample);
         }
-        if !(self.sphere_radius >= 0.5 && self.sphere_radius <= 1.5) {
-            bail!(
-                "--sphere-radius {}: must be from 0.5 to 1.5 lattice spacings",
-                self.sphere_radius
-            );
+        if let Some(r) = self.sphere_radius
+            && !(0.5..=1.5).contains(&r)
+        {
+            bail!("--sphere-radius {r}: must be from 0.5 to 1.5 lattice spacings");
         }
         for (axis, s) in ["x", "y", "z"].iter().zip(&self.bar) {
             positive(&format!("bar ({axis})"), *s)?;
@@ -231,8 +234,17 @@ fn write_scene(args: &Args) -> Result<()> {
         ..Look::default()
     };
     let albedo: Vec<[f64; 3]> = bar.rest.iter().map(|p| bar::albedo(*p)).collect();
-    let radius = args.sphere_radius * args.spacing;
-    render_frames(dst, &scene, args.size, &traj.frames, radius, &albedo, &look)?;
+    let drawing = Drawing::from_arg(args.sphere_radius, args.spacing);
+    render_frames(
+        dst,
+        &scene,
+        args.size,
+        &bar.rest,
+        args.spacing,
+        &traj.frames,
+        drawing,
+        &look,
+    )?;
     for (f, x) in traj.frames.iter().enumerate() {
         ply::write_points(&dst.join(format!("gt/particles/{f}.ply")), &to_f32(x), None)?;
     }
@@ -299,29 +311,73 @@ fn write_scene(args: &Args) -> Result<()> {
     Ok(())
 }
 
+/// How a frame's particles are drawn.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum Drawing {
+    /// The body the particles stand for ([`surface::Surface`]: each particle's cube of side
+    /// `spacing`, following the local deformation).
+    Surface,
+    /// A sphere of this radius (m) per particle (larger than the body: see [`surface`]).
+    Spheres(f64),
+}
+
+impl Drawing {
+    /// From a `--sphere-radius` in lattice spacings (none: the surface).
+    pub(crate) fn from_arg(sphere_radius: Option<f64>, spacing: f64) -> Self {
+        sphere_radius.map_or(Self::Surface, |r| Self::Spheres(r * spacing))
+    }
+
+    /// How far the drawing reaches beyond a particle's centre (m), at most.
+    pub(crate) fn reach(&self, spacing: f64) -> f64 {
+        match self {
+            Self::Surface => spacing,
+            Self::Spheres(r) => *r,
+        }
+    }
+
+    /// For `gt/params.json`.
+    pub(crate) fn describe(&self) -> String {
+        match self {
+            Self::Surface => "ray-traced surface of the particles' body (the level set 1/2 of \
+                              their quadratic B-splines, following each particle's local \
+                              deformation), Lambert shading, textured by the rest position; no \
+                              shadows"
+                .to_string(),
+            Self::Spheres(r) => format!(
+                "ray-traced spheres of radius {r} m, one per particle, Lambert shading; no shadows"
+            ),
+        }
+    }
+}
+
 /// Draws every image of `scene` (a PAC-NeRF scene just written to `dst`, `size`² pixels):
-/// each camera's plate, then the spheres of `frames[f]` (radius m, colours `albedo`) over it
-/// as `data/r_<cam>_<f>.png` with their coverage as `gt/masks/m_<cam>_<f>.png`. Refuses a
-/// frame whose spheres leave a camera's image.
+/// each camera's plate, then the body of `frames[f]` (particles whose lattice rest positions
+/// are `rest`, spacing m, textured by [`bar::albedo`] of the rest position) over it as
+/// `data/r_<cam>_<f>.png` with its coverage as `gt/masks/m_<cam>_<f>.png`. Refuses a frame
+/// that leaves a camera's image.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn render_frames(
     dst: &Path,
     scene: &pacnerf::PacnerfScene,
     size: u32,
+    rest: &[DVec3],
+    spacing: f64,
     frames: &[Vec<DVec3>],
-    radius: f64,
-    albedo: &[[f64; 3]],
+    drawing: Drawing,
     look: &Look,
 ) -> Result<()> {
+    let reach = drawing.reach(spacing);
     for img in &scene.images {
         let cam = Camera::new(&img.world_from_camera, img.intrinsics, size, size);
         check_in_view(
             &cam,
             &frames[img.frame as usize],
-            radius,
+            reach,
             img.view,
             img.frame,
         )?;
     }
+    let mut plates = std::collections::BTreeMap::new();
     for (view, plate_entry) in &scene.plates {
         let cam = Camera::new(
             &plate_entry.world_from_camera,
@@ -331,11 +387,24 @@ pub(crate) fn render_frames(
         );
         let plate = look.plate(&cam);
         write_rgb(&plate_entry.path, size, &look.resolve(&plate).rgb)?;
-        for img in scene.images.iter().filter(|i| i.view == *view) {
-            let x = &frames[img.frame as usize];
-            let frame = look.resolve(&look.spheres(&cam, &plate, x, radius, albedo));
+        plates.insert(*view, (cam, plate));
+    }
+    let albedos: Vec<[f64; 3]> = rest.iter().map(|p| bar::albedo(*p)).collect();
+    for (f, x) in frames.iter().enumerate() {
+        let body =
+            matches!(drawing, Drawing::Surface).then(|| surface::Surface::new(rest, x, spacing));
+        for img in scene.images.iter().filter(|i| i.frame as usize == f) {
+            let Some((cam, plate)) = plates.get(&img.view) else {
+                bail!("camera {} has frame {f} but no background plate", img.view);
+            };
+            let samples = match (&body, drawing) {
+                (Some(body), _) => look.surface(cam, plate, body, bar::albedo),
+                (None, Drawing::Spheres(r)) => look.spheres(cam, plate, x, r, &albedos),
+                (None, Drawing::Surface) => unreachable!("the surface is built above"),
+            };
+            let frame = look.resolve(&samples);
             write_rgb(&img.path, size, &frame.rgb)?;
-            let mask = pacnerf::gt_mask_path(dst, *view, img.frame);
+            let mask = pacnerf::gt_mask_path(dst, img.view, img.frame);
             pimage::write_gray8(&mask, size, size, &frame.alpha)?;
         }
     }
@@ -497,11 +566,14 @@ fn deformation_json(deformed: &Deformation) -> serde_json::Value {
 /// `gt/params.json`'s `render`: how the images were made.
 fn render_json(args: &Args, ring: &Ring, look: &Look) -> serde_json::Value {
     json!({
-        "renderer": "datasets-tools two-material: ray-traced spheres, one per particle, Lambert shading, depth-tested per sample; no shadows",
+        "renderer": format!(
+            "datasets-tools two-material: {}",
+            Drawing::from_arg(args.sphere_radius, args.spacing).describe()
+        ),
         "W": args.size,
         "H": args.size,
         "supersample": args.supersample,
-        "sphere_radius_m": args.sphere_radius * args.spacing,
+        "sphere_radius_m": args.sphere_radius.map(|r| r * args.spacing),
         "light_direction_to": look.to_light.to_array(),
         "ambient": look.ambient,
         "diffuse": look.diffuse,

@@ -1,15 +1,18 @@
-//! A small ray tracer that is not the Gaussian rasterizer being fitted: every particle is a
-//! Lambert-shaded sphere, found per sample by an exact ray–sphere test against a depth buffer,
-//! over a backdrop of a tiled floor mat on the ground y = 0, a plain floor around it and a
+//! A small ray tracer that is not the Gaussian rasterizer being fitted: the body the particles
+//! stand for ([`Surface`], marched per sample) or a sphere per particle (an exact ray–sphere
+//! test against a depth buffer), Lambert-shaded, over a backdrop of a tiled floor mat on the ground y = 0, a plain floor around it and a
 //! round wall (a vertical cylinder about the y axis) with a vertical colour gradient.
 //!
 //! Each pixel is the mean of `ss × ss` samples at `((x + (i + ½)/ss), (y + (j + ½)/ss))`; the
-//! object's coverage (samples that hit a sphere / ss²) is its alpha mask. The backdrop is the
+//! object's coverage (samples that hit it / ss²) is its alpha mask. The backdrop is the
 //! same in every frame and casts and receives no shadow, so the background plate is the render
 //! without the object and every pixel the object does not touch equals it exactly.
 
 use glam::DVec3;
 use pipe::scene::camera::Camera;
+use rayon::prelude::*;
+
+use super::surface::Surface;
 
 /// The light, the backdrop and the sampling.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -209,6 +212,38 @@ impl Look {
                 out.object[k] = true;
             }
         }
+        out
+    }
+
+    /// The body of [`Surface`] in front of `plate` (the same camera's [`Self::plate`]),
+    /// coloured by `albedo` of the rest position at each hit (0–255); the ground y = 0 hides
+    /// what lies below it. Rows are traced in parallel; each sample depends on its ray only,
+    /// so the result is the same for any thread count.
+    pub fn surface(
+        &self,
+        cam: &Camera,
+        plate: &Samples,
+        surface: &Surface,
+        albedo: impl Fn(DVec3) -> [f64; 3] + Sync,
+    ) -> Samples {
+        let sw = plate.sw;
+        let mut out = plate.clone();
+        out.rgb
+            .par_chunks_mut(sw)
+            .zip(out.object.par_chunks_mut(sw))
+            .enumerate()
+            .for_each(|(sy, (rgb, object))| {
+                for sx in 0..sw {
+                    let (o, d) = ray(cam, self.ss, sx, sy);
+                    let t_ground = if d.y < 0.0 { -o.y / d.y } else { f64::INFINITY };
+                    let Some((_, n, rest)) = surface.hit(o, d, t_ground) else {
+                        continue;
+                    };
+                    let shade = self.ambient + self.diffuse * n.dot(self.to_light).max(0.0);
+                    rgb[sx] = albedo(rest).map(|a| a * shade);
+                    object[sx] = true;
+                }
+            });
         out
     }
 
