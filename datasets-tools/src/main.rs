@@ -5,7 +5,7 @@
 //! scaled to match (fx/f, fy/f, cx/f, cy/f), ground-truth masks box-filtered into soft alpha,
 //! `gt/params.json` copied. The repo's test and demo scene was made this way.
 //!
-//! `datasets-tools composite SRC DST --texture shadow-greys|dark-grey --frames 0,5,9,13`
+//! `datasets-tools composite SRC DST --texture shadow-greys|greys-crimson|dark-grey|floor-tone --frames 0,5,9,13`
 //! writes a matting test scene: SRC's cameras, plates and object silhouettes, the object
 //! re-textured adversarially and its shadow cast on the plates ([`composite`]).
 //!

@@ -13,6 +13,9 @@ pub enum Texture {
     GreysCrimson,
     /// A neutral dark grey (levels ~46–66 before shading) close to the floor's grout lines.
     DarkGrey,
+    /// The cream and pink object: blotches of the floor's own colour (divided by the
+    /// mean shading 0.9, so lit it matches the floor; ~60 %) and a pale pink (~40 %).
+    FloorTone,
 }
 
 /// Hash of a lattice point to [0, 1).
@@ -86,6 +89,13 @@ impl Texture {
             Texture::DarkGrey => {
                 let g = 46.0 + 20.0 * n;
                 [g, g, g + 2.0]
+            }
+            Texture::FloorTone => {
+                if value_noise(rest / 0.05, 3) < 0.6 {
+                    floor.map(|c| (c / 0.9).min(255.0))
+                } else {
+                    [236.0, 176.0, 186.0]
+                }
             }
         }
     }
