@@ -254,6 +254,52 @@ fn a_shadow_toned_blob_on_its_shadow_is_torn_and_named() {
     }
 }
 
+/// An object coloured like the floor itself (the cream and pink object: the floor's
+/// median colour and pale pink blotches over torus-elastic's plates, 100×100, frames 0, 5, 9
+/// and 13) is not mended by the matting (measured mean IoU 0.609, min 0.379), but no torn mask
+/// passes in silence: every mask under 0.9 IoU against the truth has an agreement with the
+/// other cameras under 0.7 and is named in the warning (measured: 43 of 44 under 0.9,
+/// agreement mean 0.52, lowest 0.36; the true masks' mean 0.91, lowest 0.84).
+#[test]
+fn a_floor_coloured_object_is_torn_and_every_torn_mask_named() {
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/composite-floor-tone");
+    let run = BuiltinRun::new(&scene, "[]", "standard", "  ingest: {}\n");
+    let stderr = quiet_run(&run);
+    let m: Metrics = table::read(&run.entry("ingest").join("metrics.arrow")).unwrap();
+    let value = |metric: &str, view: u16, frame: u16| -> f64 {
+        m.rows
+            .iter()
+            .find(|r| r.metric == metric && r.view == Some(view) && r.frame == Some(frame))
+            .map(|r| r.value)
+            .unwrap_or_else(|| panic!("{metric} of camera {view} frame {frame}"))
+    };
+    let mut torn = 0;
+    for frame in [0u16, 5, 9, 13] {
+        for view in 0..11u16 {
+            let (iou, agreement) = (
+                value("mask_iou", view, frame),
+                value("mask_agreement", view, frame),
+            );
+            assert!(
+                iou.is_finite() && agreement.is_finite(),
+                "{iou} {agreement}"
+            );
+            if iou < 0.9 {
+                torn += 1;
+                assert!(
+                    agreement < 0.7,
+                    "camera {view} frame {frame}: IoU {iou}, agreement {agreement}"
+                );
+                assert!(
+                    stderr.contains(&format!("camera {view} frame {frame}:")),
+                    "camera {view} frame {frame} (IoU {iou}) not named: {stderr}"
+                );
+            }
+        }
+    }
+    println!("{torn} of 44 masks under 0.9 IoU, each named");
+}
+
 /// A torn mask (ground-truth masks, one of them half erased) is named in a warning, also with
 /// `--quiet`, and its agreement is the frame's lowest.
 #[test]
