@@ -68,10 +68,11 @@ fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
 
 /// A tumbling bar (0.4 × 0.1 × 0.2 m, spin [3, 1, 6] rad/s): the velocity stage starts its
 /// descent from the turn of the masks' hulls (`track::fit_angular_velocity`) and learns the
-/// spin: measured [2.64, 1.00, 5.66] rad/s, as with 40 epochs (what 48 pixels resolve), from
-/// the hulls' [4.04, 2.10, 4.96] moved by the spin probes to [1.95, 0.00, 4.96]. From rest (`init: zero`) the draft's epochs find only
-/// the spin about y: [−0.04, 0.00, 5.56], 3.1 rad/s off (on the 100×100 version the hull's
-/// linear start but no spin left 0.76 of the 3 rad/s about the long axis).
+/// spin: measured from a start of [2.74, 1.85, 5.22] rad/s to [2.78, 0.96, 5.78] (the scene
+/// drawn as the body, 2026-11-30). On the scene drawn as spheres (2026-11-29) it learned
+/// [2.64, 1.00, 5.66], as with 40 epochs, and from rest (`init: zero`) the draft's epochs found
+/// only the spin about y: [−0.04, 0.00, 5.56], 3.1 rad/s off (on the 100×100 version the
+/// hull's linear start but no spin left 0.76 of the 3 rad/s about the long axis).
 #[test]
 fn a_tumbling_throws_spin_is_learned_from_the_hulls_turn() {
     let v = spinning("bar", "0.4,0.1,0.2", "0.5,0.6,-0.2", "3,1,6");
@@ -96,9 +97,11 @@ fn a_tumbling_throws_spin_is_learned_from_the_hulls_turn() {
 
 /// A ball flattened along y (0.3 × 0.2 × 0.3 m) spinning at [0, 8, 2] rad/s, mostly about its
 /// axis of symmetry: its silhouette does not show that turn (its hulls give no start), only
-/// its texture does. The spin probes (`velocity.probe_spin`) start the descent at [0.71, 5.62,
-/// 1.21] and it learns [0.06, 7.22, 1.75] (measured); without them it stopped at [0.57, 1.76,
-/// 1.21] (with E = 3e5 Pa; the loss of a free flight does not depend on it).
+/// its texture does. The spin probes (`velocity.probe_spin`) start the descent at [0.00, 8.38,
+/// 2.09] and it learns [0.06, 7.39, 1.93] (measured on the scene drawn as the body,
+/// 2026-11-30); on the scene drawn as spheres they started it at [0.71, 5.62, 1.21], and
+/// without them it stopped at [0.57, 1.76, 1.21] (with E = 3e5 Pa; the loss of a free flight
+/// does not depend on it).
 #[test]
 fn a_balls_spin_about_its_axis_is_found_by_the_probes() {
     let v = spinning("ball", "0.3,0.2,0.3", "0.3,0,0.3", "0,8,2");

@@ -350,6 +350,13 @@ impl Drawing {
     }
 }
 
+/// One frame's particles as they are drawn: their surface, or their centres and the spheres'
+/// radius (m).
+enum Framed<'a> {
+    Surface(surface::Surface),
+    Spheres(&'a [DVec3], f64),
+}
+
 /// Draws every image of `scene` (a PAC-NeRF scene just written to `dst`, `size`² pixels):
 /// each camera's plate, then the body of `frames[f]` (particles whose lattice rest positions
 /// are `rest`, spacing m, textured by [`bar::albedo`] of the rest position) over it as
@@ -389,18 +396,23 @@ pub(crate) fn render_frames(
         write_rgb(&plate_entry.path, size, &look.resolve(&plate).rgb)?;
         plates.insert(*view, (cam, plate));
     }
-    let albedos: Vec<[f64; 3]> = rest.iter().map(|p| bar::albedo(*p)).collect();
+    // The spheres' colours, one per particle (the surface evaluates the texture at each hit).
+    let albedos: Vec<[f64; 3]> = match drawing {
+        Drawing::Spheres(_) => rest.iter().map(|p| bar::albedo(*p)).collect(),
+        Drawing::Surface => Vec::new(),
+    };
     for (f, x) in frames.iter().enumerate() {
-        let body =
-            matches!(drawing, Drawing::Surface).then(|| surface::Surface::new(rest, x, spacing));
+        let body = match drawing {
+            Drawing::Surface => Framed::Surface(surface::Surface::new(rest, x, spacing)),
+            Drawing::Spheres(radius) => Framed::Spheres(x, radius),
+        };
         for img in scene.images.iter().filter(|i| i.frame as usize == f) {
             let Some((cam, plate)) = plates.get(&img.view) else {
                 bail!("camera {} has frame {f} but no background plate", img.view);
             };
-            let samples = match (&body, drawing) {
-                (Some(body), _) => look.surface(cam, plate, body, bar::albedo),
-                (None, Drawing::Spheres(r)) => look.spheres(cam, plate, x, r, &albedos),
-                (None, Drawing::Surface) => unreachable!("the surface is built above"),
+            let samples = match &body {
+                Framed::Surface(surface) => look.surface(cam, plate, surface, bar::albedo),
+                Framed::Spheres(x, r) => look.spheres(cam, plate, x, *r, &albedos),
             };
             let frame = look.resolve(&samples);
             write_rgb(&img.path, size, &frame.rgb)?;
