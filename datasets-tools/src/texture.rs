@@ -13,9 +13,13 @@ pub enum Texture {
     GreysCrimson,
     /// A neutral dark grey (levels ~46–66 before shading) close to the floor's grout lines.
     DarkGrey,
-    /// The cream and pink object: blotches of the floor's own colour (divided by the
-    /// mean shading 0.9, so lit it matches the floor; ~60 %) and a pale pink (~40 %).
+    /// Camouflage: blotches of the floor's own colour (divided by the mean shading 0.9, so lit
+    /// it matches the floor in hue and brightness; ~60 %) and a pale pink (~40 %).
     FloorTone,
+    /// The cream and pink object over the beige floor: blotches of a light cream
+    /// (238, 226, 196; ~60 %), whose shaded sides fall to the floor's levels, and a pale pink
+    /// (~40 %).
+    Cream,
 }
 
 /// Hash of a lattice point to [0, 1).
@@ -93,6 +97,13 @@ impl Texture {
             Texture::FloorTone => {
                 if value_noise(rest / 0.05, 3) < 0.6 {
                     floor.map(|c| (c / 0.9).min(255.0))
+                } else {
+                    [236.0, 176.0, 186.0]
+                }
+            }
+            Texture::Cream => {
+                if value_noise(rest / 0.05, 3) < 0.6 {
+                    [238.0, 226.0, 196.0]
                 } else {
                     [236.0, 176.0, 186.0]
                 }

@@ -15,8 +15,10 @@
 //! All cameras of a frame are matted together (`pipe_matte::matte_frame`): a shadow lies on the
 //! ground and darkens it for every camera, and the object is where the cameras agree in 3D.
 //! Each mask's agreement with the other cameras (`mask_agreement`: IoU with the reprojection of
-//! the other cameras' visual hull) is recorded in `metrics.arrow`, and masks that disagree are
-//! named in a warning, ground truth or not. When the dataset ships ground-truth masks
+//! the other cameras' visual hull) and its consistency (`mask_consistency`: that agreement
+//! against what consistent masks reach in the same camera layout, `pipe_matte::consistency`)
+//! are recorded in `metrics.arrow`, and masks whose consistency is below
+//! [`CONSISTENCY_WARNING`] are named in a warning, ground truth or not. When the dataset ships ground-truth masks
 //! (`gt/masks/m_<cam>_<frame>.png`), the mask IoU of every image is recorded too (`mask_iou`).
 
 pub mod trained;
@@ -142,7 +144,7 @@ pub struct Ingest;
 impl TypedStage for Ingest {
     type Params = IngestParams;
     const KIND: &'static str = "ingest";
-    const VERSION: u32 = 7;
+    const VERSION: u32 = 8;
     const DESCRIPTION: &'static str = "Read a PAC-NeRF or PhysDreamer capture, matte the object against each camera's background plate (or take the dataset's masks), write masks, composited images, the plates and frames.arrow (and a PhysDreamer scene's trained Gaussians, the moving part simulated)";
 
     fn output_schemas(&self) -> Vec<(&'static str, u32)> {
@@ -329,6 +331,7 @@ fn run_ingest(p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageE
     let mut rows = Vec::with_capacity(images.len());
     let mut ious = Vec::new();
     let mut agreements = Vec::new();
+    let mut consistencies = Vec::new();
     let mut warnings = Vec::new();
     for frame_images in by_frame.values() {
         ctx.check_interrupted()?;
@@ -352,12 +355,14 @@ fn run_ingest(p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageE
                 ious.push(iou);
                 ctx.metric(metric(view, frame, "mask_iou", iou));
             }
-            if let Some(a) = d.agreement {
+            if let Some((a, c)) = d.agreement {
                 agreements.push(a);
+                consistencies.push(c);
                 ctx.metric(metric(view, frame, "mask_agreement", a));
-                if a < AGREEMENT_WARNING {
+                ctx.metric(metric(view, frame, "mask_consistency", c));
+                if c < CONSISTENCY_WARNING {
                     warnings.push(format!(
-                        "camera {} frame {}: agreement {a:.2}",
+                        "camera {} frame {}: consistency {c:.2} (agreement {a:.2})",
                         d.row.view, d.row.frame
                     ));
                 }
@@ -372,7 +377,11 @@ fn run_ingest(p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageE
         }
     }
     rows.sort_by_key(|r| (r.view, r.frame));
-    for (name, values) in [("mask_iou", &ious), ("mask_agreement", &agreements)] {
+    for (name, values) in [
+        ("mask_iou", &ious),
+        ("mask_agreement", &agreements),
+        ("mask_consistency", &consistencies),
+    ] {
         if values.is_empty() {
             continue;
         }
@@ -395,7 +404,7 @@ fn run_ingest(p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageE
     }
     if !warnings.is_empty() {
         ctx.progress.warn(&format!(
-            "{} of {} masks disagree with the other cameras (agreement below {AGREEMENT_WARNING}: how much of the mask the other cameras' visual hull explains, IoU) or are empty; check these images and masks/: {}",
+            "{} of {} masks disagree with the other cameras (consistency below {CONSISTENCY_WARNING}: the IoU of the mask with the other cameras' visual hull, against what consistent masks reach with these cameras) or are empty; check these images and masks/: {}",
             warnings.len(),
             rows.len(),
             warnings.join("; ")
@@ -470,9 +479,10 @@ fn plate_rel(view: u16) -> String {
     format!("plates/p_{view}.png")
 }
 
-/// Masks whose agreement with the other cameras (`pipe_matte::agreement`) is below this are
-/// reported. Ground-truth masks of the sample scenes score 0.77 and more (mean 0.92–0.94).
-pub const AGREEMENT_WARNING: f64 = 0.7;
+/// Masks whose consistency with the other cameras (`pipe_matte::consistency`) is below this
+/// are reported: `MultiViewParams::consistency_threshold` (the sample scenes' masks, true or
+/// matted, score 0.95 and more with 3, 4, 6 or all 11 of their cameras).
+pub const CONSISTENCY_WARNING: f64 = 0.9;
 
 fn metric(view: Option<u16>, frame: Option<u16>, name: &str, value: f64) -> MetricRow {
     MetricRow {
@@ -499,7 +509,8 @@ struct Loaded<'a> {
 struct Ingested {
     row: FrameRow,
     iou: Option<f64>,
-    agreement: Option<f64>,
+    /// Agreement and consistency with the other cameras.
+    agreement: Option<(f64, f64)>,
     empty: bool,
 }
 
@@ -573,8 +584,9 @@ fn load<'a>(
     })
 }
 
-/// One frame's masks (0/255 bytes, in the images' order) and their agreements, if computed.
-type FrameMasks = (Vec<Vec<u8>>, Option<Vec<f64>>);
+/// One frame's masks (0/255 bytes, in the images' order) and their agreements and
+/// consistencies, if computed.
+type FrameMasks = (Vec<Vec<u8>>, Option<(Vec<f64>, Vec<f64>)>);
 
 /// The masks of one frame's images: all cameras matted together against their plates
 /// (`pipe_matte::matte_frame`), or the ground truth, or everything; with each mask's
@@ -612,9 +624,10 @@ fn frame_masks(
                 masks.push(gt);
             }
             let cameras: Vec<_> = loaded.iter().map(|l| l.camera).collect();
-            let agreement =
-                pipe_matte::agreement(&cameras, &wrapped, &pipe_matte::MultiViewParams::default());
-            Ok((masks, Some(agreement)))
+            let params = pipe_matte::MultiViewParams::default();
+            let agreement = pipe_matte::agreement(&cameras, &wrapped, &params);
+            let consistency = pipe_matte::consistency(&cameras, &wrapped, &params);
+            Ok((masks, Some((agreement, consistency))))
         }
         MatteMode::Plate => {
             let views = loaded
@@ -643,7 +656,7 @@ fn frame_masks(
                     .into_iter()
                     .map(pipe_matte::Mask::into_data)
                     .collect(),
-                Some(matte.agreement),
+                Some((matte.agreement, matte.consistency)),
             ))
         }
     }
@@ -676,7 +689,7 @@ fn ingest_frame(
             Ok(Ingested {
                 row,
                 iou: l.gt.as_ref().map(|g| iou(mask, g)),
-                agreement: agreement.as_ref().map(|a| a[i]),
+                agreement: agreement.as_ref().map(|(a, c)| (a[i], c[i])),
                 empty: p.matte == MatteMode::Plate && mask.iter().all(|m| *m == 0),
             })
         })

@@ -1,6 +1,6 @@
 //! Mattes every frame of a PAC-NeRF-layout scene with all its views together
 //! ([`pipe_matte::matte_frame`]) and prints IoU against the ground-truth masks and the
-//! multi-view agreement.
+//! multi-view agreement and consistency (of the matte's masks and of the true ones).
 //!
 //! ```text
 //! cargo run -p pipe-matte --release --example matte_scene -- <scene_dir> [--single] [--dump DIR] [--set field=value]...
@@ -8,7 +8,7 @@
 //!
 //! `--single` mattes each image alone ([`pipe_matte::matte`]) for comparison; `--dump DIR`
 //! writes each mask as `DIR/m_<cam>_<frame>.png`; `--set` overrides one `MultiViewParams`
-//! field (`ground_min_change`, `ground_lit_views`, `photo_rounds`, `support_views`,
+//! field (`change_threshold`, `block_change_threshold`, `ground_min_change`, `ground_lit_views`, `photo_rounds`, `support_views`,
 //! `photo_tolerance`, `hull_grid`, `hull_max_misses`, and the graph cut's `cut_rounds`,
 //! `cut_smoothness`, `cut_evidence_cost`, `cut_shadow_cost`, `cut_agree_cost`, `cut_pull`,
 //! `witness_tolerance`, `witness_noise_factor`, `witness_min_disagree`, `witness_min_height`).
@@ -19,7 +19,8 @@ use std::process::ExitCode;
 
 use glam::{DMat3, DVec3};
 use pipe_matte::{
-    Mask, MultiViewParams, Pinhole, RgbImageView, View, agreement, iou, matte, matte_frame,
+    Mask, MultiViewParams, Pinhole, RgbImageView, View, agreement, consistency, iou, matte,
+    matte_frame,
 };
 
 struct Entry {
@@ -94,6 +95,8 @@ fn run(
     let mut rows: Vec<(f64, usize, i64)> = Vec::new();
     let mut agreements: Vec<(f64, usize, i64)> = Vec::new();
     let mut gt_agreements: Vec<(f64, usize, i64)> = Vec::new();
+    let mut consistencies: Vec<(f64, usize, i64)> = Vec::new();
+    let mut gt_consistencies: Vec<(f64, usize, i64)> = Vec::new();
     let mut matte_seconds = 0.0;
     for (frame, list) in &frames {
         let images: Vec<(Vec<u8>, usize, usize)> = list
@@ -112,17 +115,17 @@ fn run(
                 })
             })
             .collect::<Result<_, String>>()?;
-        let (masks, agree) = if single {
+        let (masks, agree, consistent) = if single {
             let m: Vec<Mask> = views
                 .iter()
                 .map(|v| matte(&v.image, &v.plate, &params.view).map_err(|e| e.to_string()))
                 .collect::<Result<_, _>>()?;
-            (m, vec![f64::NAN; views.len()])
+            (m, vec![f64::NAN; views.len()], vec![f64::NAN; views.len()])
         } else {
             let start = std::time::Instant::now();
             let r = matte_frame(&views, params).map_err(|e| e.to_string())?;
             matte_seconds += start.elapsed().as_secs_f64();
-            (r.masks, r.agreement)
+            (r.masks, r.agreement, r.consistency)
         };
         let gts: Vec<Mask> = list
             .iter()
@@ -133,8 +136,14 @@ fn run(
             })
             .collect::<Result<_, _>>()?;
         let cameras: Vec<Pinhole> = list.iter().map(|e| e.camera).collect();
-        for (a, e) in agreement(&cameras, &gts, params).iter().zip(list) {
+        let gt_agree = agreement(&cameras, &gts, params);
+        let gt_consistent = consistency(&cameras, &gts, params);
+        for ((a, c), e) in gt_agree.iter().zip(&gt_consistent).zip(list) {
             gt_agreements.push((*a, e.cam, *frame));
+            gt_consistencies.push((*c, e.cam, *frame));
+        }
+        for (c, e) in consistent.iter().zip(list) {
+            consistencies.push((*c, e.cam, *frame));
         }
         for (((e, m), a), gt) in list.iter().zip(&masks).zip(&agree).zip(&gts) {
             rows.push((iou(m, gt), e.cam, *frame));
@@ -159,6 +168,8 @@ fn run(
     rows.sort_by(|a, b| a.0.total_cmp(&b.0));
     agreements.sort_by(|a, b| a.0.total_cmp(&b.0));
     gt_agreements.sort_by(|a, b| a.0.total_cmp(&b.0));
+    consistencies.sort_by(|a, b| a.0.total_cmp(&b.0));
+    gt_consistencies.sort_by(|a, b| a.0.total_cmp(&b.0));
     let name = scene.file_name().unwrap_or_default().to_string_lossy();
     let fmt = |v: &[(f64, usize, i64)]| {
         v.iter()
@@ -183,11 +194,23 @@ fn run(
         );
         let amean = agreements.iter().map(|r| r.0).sum::<f64>() / agreements.len().max(1) as f64;
         println!("  agreement mean {amean:.4}; lowest: {}", fmt(&agreements));
+        let cmean =
+            consistencies.iter().map(|r| r.0).sum::<f64>() / consistencies.len().max(1) as f64;
+        println!(
+            "  consistency mean {cmean:.4}; lowest: {}",
+            fmt(&consistencies)
+        );
     }
     let gmean = gt_agreements.iter().map(|r| r.0).sum::<f64>() / gt_agreements.len().max(1) as f64;
     println!(
         "  ground truth's agreement mean {gmean:.4}; lowest: {}",
         fmt(&gt_agreements)
+    );
+    let gcmean =
+        gt_consistencies.iter().map(|r| r.0).sum::<f64>() / gt_consistencies.len().max(1) as f64;
+    println!(
+        "  ground truth's consistency mean {gcmean:.4}; lowest: {}",
+        fmt(&gt_consistencies)
     );
     Ok(())
 }
@@ -196,6 +219,10 @@ fn set(params: &mut MultiViewParams, kv: &str) -> Result<(), String> {
     let (k, v) = kv.split_once('=').ok_or("--set expects field=value")?;
     let bad = |e: &dyn std::fmt::Display| format!("--set {kv}: {e}");
     match k {
+        "change_threshold" => params.view.change_threshold = v.parse().map_err(|e| bad(&e))?,
+        "block_change_threshold" => {
+            params.view.block_change_threshold = v.parse().map_err(|e| bad(&e))?
+        }
         "ground_min_change" => params.ground_min_change = v.parse().map_err(|e| bad(&e))?,
         "ground_lit_views" => params.ground_lit_views = v.parse().map_err(|e| bad(&e))?,
         "photo_rounds" => params.photo_rounds = v.parse().map_err(|e| bad(&e))?,
@@ -203,6 +230,7 @@ fn set(params: &mut MultiViewParams, kv: &str) -> Result<(), String> {
         "photo_tolerance" => params.photo_tolerance = v.parse().map_err(|e| bad(&e))?,
         "hull_grid" => params.hull_grid = v.parse().map_err(|e| bad(&e))?,
         "hull_max_misses" => params.hull_max_misses = v.parse().map_err(|e| bad(&e))?,
+        "consistency_threshold" => params.consistency_threshold = v.parse().map_err(|e| bad(&e))?,
         "cut_rounds" => params.cut_rounds = v.parse().map_err(|e| bad(&e))?,
         "cut_smoothness" => params.cut_smoothness = v.parse().map_err(|e| bad(&e))?,
         "cut_evidence_cost" => params.cut_evidence_cost = v.parse().map_err(|e| bad(&e))?,

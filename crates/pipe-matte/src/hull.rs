@@ -185,15 +185,16 @@ fn slab(o: DVec3, d: DVec3, lo: DVec3, hi: DVec3) -> Option<(f64, f64)> {
     (t0 < t1 && t0.is_finite() && t1.is_finite()).then_some((t0, t1))
 }
 
-/// Bit `i` set iff view `i` does not see `p` inside its object mask (outside its frustum
-/// counts as not seen).
+/// Bit `i` set iff view `i` does not see `p` inside its object mask (outside its frustum, or
+/// past the end of a mask shorter than its camera's image, counts as not seen).
 fn missed_by(p: DVec3, views: &[MaskedView<'_>]) -> u64 {
     let mut bits = 0u64;
     for (i, v) in views.iter().enumerate() {
         let inside = v
             .camera
             .pixel(p)
-            .is_some_and(|(u, w)| v.mask[(w * v.camera.width + u) as usize] >= 128);
+            .and_then(|(u, w)| v.mask.get((w * v.camera.width + u) as usize))
+            .is_some_and(|m| *m >= 128);
         if !inside {
             bits |= 1 << i;
         }

@@ -20,7 +20,8 @@
 //! [`matte_frame`] mattes all cameras of one frame together (`multiview.rs`): the geometry of
 //! the capture tells an object from its shadow on the ground, and from background of its own
 //! colour, where one view's colours cannot; it also scores how far each mask agrees with the
-//! other views ([`agreement`]). [`carve`] is the visual-hull carving it shares with the
+//! other views ([`agreement`]), and how far that is from what consistent masks reach in the
+//! same camera layout ([`consistency`]). [`carve`] is the visual-hull carving it shares with the
 //! pipeline's `init` stage.
 
 mod camera;
@@ -44,7 +45,7 @@ pub use camera::Pinhole;
 pub use error::MatteError;
 pub use hull::{Hull, MaskedView, carve};
 pub use mask::{Mask, iou};
-pub use multiview::{FrameMatte, View, agreement, matte_frame};
+pub use multiview::{FrameMatte, View, agreement, consistency, matte_frame};
 pub use params::{MatteParams, MultiViewParams};
 pub use view::RgbImageView;
 

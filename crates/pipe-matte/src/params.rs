@@ -7,6 +7,12 @@ pub struct MatteParams {
     /// A pixel is a change candidate iff `max_c |I_c - B_c| > change_threshold`
     /// (8-bit units). Absorbs the path tracer's noise between frame and plate.
     pub change_threshold: u8,
+    /// A pixel whose own change is within `change_threshold` is still a change candidate when
+    /// the mean over its 3×3 block of the signed difference `I_c − B_c` exceeds this in some
+    /// channel (8-bit units): a change shared by a block (an object a few levels off the
+    /// plate's colour) stands out of per-pixel noise three times better. Such a pixel's shadow
+    /// test uses the block's mean colours. Values not below `change_threshold` disable it.
+    pub block_change_threshold: u8,
     /// Offset `k` in the shadow ratio `(I_c + k) / (B_c + k)`; keeps near-black pixels
     /// from producing huge log-ratios. Non-positive values are treated as tiny.
     pub ratio_offset: f32,
@@ -35,6 +41,7 @@ impl Default for MatteParams {
     fn default() -> Self {
         Self {
             change_threshold: 12,
+            block_change_threshold: 4,
             ratio_offset: 4.0,
             shadow_max_spread: 0.15,
             shadow_max_log_gain: 0.05,
@@ -71,6 +78,10 @@ pub struct MultiViewParams {
     pub hull_grid: usize,
     /// Views a voxel of the agreement hull (of the other views than the one scored) may miss.
     pub hull_max_misses: usize,
+    /// A mask whose [`crate::consistency`] is below this disagrees with the other views (the
+    /// sample scenes' masks score 0.95 and more, a mask torn in half 0.35–0.71); below it,
+    /// `consistency` also looks for one view that alone lowers the others.
+    pub consistency_threshold: f64,
     /// Rounds of the graph-cut refinement (`refine.rs`); 0 skips it.
     pub cut_rounds: usize,
     /// Weight λ of the cut's contrast-sensitive smoothness term (cost units per pixel of
@@ -126,6 +137,7 @@ impl Default for MultiViewParams {
             photo_tolerance: 8,
             hull_grid: 64,
             hull_max_misses: 0,
+            consistency_threshold: 0.9,
             cut_rounds: 3,
             cut_smoothness: 0.8,
             cut_evidence_cost: 2.0,

@@ -7,8 +7,8 @@
 
 use glam::{DMat3, DVec3};
 use pipe_matte::{
-    Mask, MatteParams, MultiViewParams, Pinhole, RgbImageView, View, agreement, iou, matte,
-    matte_frame,
+    Mask, MatteParams, MultiViewParams, Pinhole, RgbImageView, View, agreement, consistency, iou,
+    matte, matte_frame,
 };
 
 const SIZE: u32 = 64;
@@ -228,6 +228,68 @@ fn a_torn_mask_agrees_least_with_the_other_views() {
         .unwrap();
     assert_eq!(lowest, 2, "{after:?}");
     assert!(after[2] < 0.7, "{after:?}");
+    // Against what consistent masks reach in this layout: the whole masks near 1, the torn one
+    // far below (the ingest warning's 0.9).
+    let whole_c = consistency(&s.cameras, &s.truth, &params);
+    assert!(
+        whole_c.iter().all(|c| (0.95..=1.0).contains(c)),
+        "{whole_c:?}"
+    );
+    let after_c = consistency(&s.cameras, &torn, &params);
+    assert!(after_c[2] < 0.9, "{after_c:?}");
+    let lowest_c = (0..after_c.len())
+        .min_by(|a, b| after_c[*a].total_cmp(&after_c[*b]))
+        .unwrap();
+    assert_eq!(lowest_c, 2, "{after_c:?}");
+}
+
+/// With three cameras a visual hull is loose: true masks agree with the other two cameras' hull
+/// far less than with nine, but as well as consistent masks can, so their consistency stays
+/// near 1; a torn one still falls.
+#[test]
+fn consistency_does_not_blame_a_small_camera_layout() {
+    let s = scene();
+    let params = MultiViewParams::default();
+    let pick = [0usize, 3, 6];
+    let cameras: Vec<Pinhole> = pick.iter().map(|i| s.cameras[*i]).collect();
+    let truth: Vec<Mask> = pick.iter().map(|i| s.truth[*i].clone()).collect();
+    let a = agreement(&cameras, &truth, &params);
+    let c = consistency(&cameras, &truth, &params);
+    let nine = agreement(&s.cameras, &s.truth, &params);
+    assert!(
+        a.iter().sum::<f64>() / 3.0 < pick.iter().map(|i| nine[*i]).sum::<f64>() / 3.0,
+        "three cameras {a:?}, nine {nine:?}"
+    );
+    assert!(
+        c.iter().all(|v| (0.95..=1.0).contains(v)),
+        "{c:?} (agreement {a:?})"
+    );
+    let mut torn = truth.clone();
+    let n = SIZE as usize;
+    let data: Vec<u8> = torn[1]
+        .data()
+        .iter()
+        .enumerate()
+        .map(|(i, v)| if i % n < n / 2 { 0 } else { *v })
+        .collect();
+    torn[1] = Mask::from_threshold(n, n, &data, 128).unwrap();
+    let ct = consistency(&cameras, &torn, &params);
+    assert!(ct[1] < 0.9, "{ct:?}");
+    assert!(ct.iter().all(|v| v.is_finite()), "{ct:?}");
+    // No cameras, one camera, and mismatched sizes give finite values.
+    assert!(consistency(&[], &[], &params).is_empty());
+    let mut resized = cameras.clone();
+    resized[0].width = SIZE / 2;
+    let cr = consistency(&resized, &truth, &params);
+    assert_eq!(cr.len(), 3);
+    assert!(cr.iter().all(|v| (0.0..=1.0).contains(v)), "{cr:?}");
+    assert_eq!(cr[0], 0.0, "{cr:?}");
+    // A camera larger than its mask neither panics nor scores.
+    resized[0].width = SIZE * 2;
+    let cr = consistency(&resized, &truth, &params);
+    assert!(cr.iter().all(|v| (0.0..=1.0).contains(v)), "{cr:?}");
+    assert_eq!(cr[0], 0.0, "{cr:?}");
+    assert_eq!(consistency(&cameras[..1], &truth[..1], &params), vec![1.0]);
 }
 
 #[test]
