@@ -142,30 +142,21 @@ fn fixture_scene_cameras_frames_and_masks() {
         .unwrap()
         .value;
     assert!((reported - mean).abs() < 1e-9, "{reported} vs {mean}");
-    // Every image has its agreement with the other cameras, in [0, 1].
-    let agreements: Vec<f64> = m
-        .rows
-        .iter()
-        .filter(|r| r.metric == "mask_agreement")
-        .map(|r| r.value)
-        .collect();
-    assert_eq!(agreements.len(), frames.rows.len());
-    assert!(
-        agreements.iter().all(|a| (0.0..=1.0).contains(a)),
-        "{agreements:?}"
-    );
-    // And its consistency: none is low enough to be named.
-    let consistency: Vec<f64> = m
-        .rows
-        .iter()
-        .filter(|r| r.metric == "mask_consistency")
-        .map(|r| r.value)
-        .collect();
-    assert_eq!(consistency.len(), frames.rows.len());
-    assert!(
-        consistency.iter().all(|c| (0.9..=1.0).contains(c)),
-        "{consistency:?}"
-    );
+    // Every image has its agreement with the other cameras, in [0, 1], and its consistency,
+    // none low enough to be named.
+    for (metric, low) in [("mask_agreement", 0.0), ("mask_consistency", 0.9)] {
+        let values: Vec<f64> = m
+            .rows
+            .iter()
+            .filter(|r| r.metric == metric)
+            .map(|r| r.value)
+            .collect();
+        assert_eq!(values.len(), frames.rows.len(), "{metric}");
+        assert!(
+            values.iter().all(|a| (low..=1.0).contains(a)),
+            "{metric}: {values:?}"
+        );
+    }
 }
 
 /// Runs `run`'s pipeline with `pipe --quiet run`; it must succeed. Returns its stderr.
@@ -407,31 +398,10 @@ fn torn_mask_is_reported_by_camera_and_frame() {
 /// named.
 #[test]
 fn a_four_camera_capture_is_not_warned_about() {
-    let dir = tempfile::tempdir().unwrap();
-    std::fs::create_dir_all(dir.path().join("data")).unwrap();
-    let json: Vec<serde_json::Value> =
-        serde_json::from_slice(&std::fs::read(fixture().join("all_data.json")).unwrap()).unwrap();
-    let keep: Vec<serde_json::Value> = json
-        .into_iter()
-        .filter(|e| {
-            let n = e["file_path"].as_str().unwrap();
-            ["r_0_", "r_3_", "r_6_", "r_9_"]
-                .iter()
-                .any(|p| n.contains(p))
-                && ["_-1.png", "_0.png", "_7.png"]
-                    .iter()
-                    .any(|s| n.ends_with(s))
-        })
-        .collect();
-    for e in &keep {
-        let rel = e["file_path"].as_str().unwrap().trim_start_matches("./");
-        std::fs::copy(fixture().join(rel), dir.path().join(rel)).unwrap();
-    }
-    std::fs::write(
-        dir.path().join("all_data.json"),
-        serde_json::to_string(&keep).unwrap(),
-    )
-    .unwrap();
+    let dir = subset_copy(
+        &["r_0_", "r_3_", "r_6_", "r_9_"],
+        &["_-1.png", "_0.png", "_7.png"],
+    );
     let run = BuiltinRun::new(dir.path(), "[]", "standard", "  ingest: {}\n");
     let stderr = quiet_run(&run);
     assert!(!stderr.contains("warning:"), "{stderr}");
@@ -473,23 +443,14 @@ fn add_noise(data: &mut [u8], sigma: f64, seed: u64) {
 /// The fixture's frames 0, 5, 9 and 13 and plates, each image with its own noise of 3 levels
 /// (a camera's frames and a plate shot apart), and their true masks.
 fn noisy_copy() -> tempfile::TempDir {
-    let dir = tempfile::tempdir().unwrap();
-    std::fs::create_dir_all(dir.path().join("data")).unwrap();
+    let frames = ["_-1.png", "_0.png", "_5.png", "_9.png", "_13.png"];
+    let dir = subset_copy(&["r_"], &frames);
     std::fs::create_dir_all(dir.path().join("gt/masks")).unwrap();
-    let json: Vec<serde_json::Value> =
-        serde_json::from_slice(&std::fs::read(fixture().join("all_data.json")).unwrap()).unwrap();
-    let keep: Vec<serde_json::Value> = json
-        .into_iter()
-        .filter(|e| {
-            let n = e["file_path"].as_str().unwrap();
-            ["_-1.png", "_0.png", "_5.png", "_9.png", "_13.png"]
-                .iter()
-                .any(|s| n.ends_with(s))
-        })
-        .collect();
+    let keep: Vec<serde_json::Value> =
+        serde_json::from_slice(&std::fs::read(dir.path().join("all_data.json")).unwrap()).unwrap();
     for (seed, e) in keep.iter().enumerate() {
         let rel = e["file_path"].as_str().unwrap().trim_start_matches("./");
-        let mut img = image::open(fixture().join(rel)).unwrap().into_rgb8();
+        let mut img = image::open(dir.path().join(rel)).unwrap().into_rgb8();
         add_noise(&mut img, 3.0, seed as u64);
         img.save(dir.path().join(rel)).unwrap();
         let stem = rel.trim_start_matches("data/r_").trim_end_matches(".png");
@@ -498,11 +459,6 @@ fn noisy_copy() -> tempfile::TempDir {
             std::fs::copy(fixture().join(&mask), dir.path().join(&mask)).unwrap();
         }
     }
-    std::fs::write(
-        dir.path().join("all_data.json"),
-        serde_json::to_string(&keep).unwrap(),
-    )
-    .unwrap();
     dir
 }
 
@@ -524,6 +480,12 @@ fn noisy_frames_and_plates_keep_the_masks() {
 
 /// A writable copy of the fixture with only cameras 0 and 1, frames 0 and 1.
 fn small_copy() -> tempfile::TempDir {
+    subset_copy(&["r_0_", "r_1_"], &["_-1.png", "_0.png", "_1.png"])
+}
+
+/// A writable copy of the fixture with the images whose names hold one of `cameras` (`r_<cam>_`)
+/// and end with one of `frames` (`_<frame>.png`, `_-1.png` for the plates).
+fn subset_copy(cameras: &[&str], frames: &[&str]) -> tempfile::TempDir {
     let dir = tempfile::tempdir().unwrap();
     std::fs::create_dir_all(dir.path().join("data")).unwrap();
     let json: Vec<serde_json::Value> =
@@ -532,10 +494,7 @@ fn small_copy() -> tempfile::TempDir {
         .into_iter()
         .filter(|e| {
             let n = e["file_path"].as_str().unwrap();
-            ["r_0_", "r_1_"].iter().any(|p| n.contains(p))
-                && ["_-1.png", "_0.png", "_1.png"]
-                    .iter()
-                    .any(|s| n.ends_with(s))
+            cameras.iter().any(|p| n.contains(p)) && frames.iter().any(|s| n.ends_with(s))
         })
         .collect();
     for e in &keep {

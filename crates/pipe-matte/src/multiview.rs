@@ -327,19 +327,24 @@ pub fn agreement(cameras: &[Pinhole], masks: &[Mask], p: &MultiViewParams) -> Ve
     agreement_with(cameras, masks, p.hull_grid, p.hull_max_misses)
 }
 
-/// [`agreement`] with hulls carved at `grid` voxels in which a voxel may miss `misses` views.
-fn agreement_with(cameras: &[Pinhole], masks: &[Mask], grid: usize, misses: usize) -> Vec<f64> {
-    if cameras.len() < 2 {
-        return vec![1.0; cameras.len()];
-    }
-    let masked: Vec<MaskedView<'_>> = cameras
+/// Each camera with its mask, as the hull carving takes them.
+fn masked_views<'a>(cameras: &[Pinhole], masks: &'a [Mask]) -> Vec<MaskedView<'a>> {
+    cameras
         .iter()
         .zip(masks)
         .map(|(c, m)| MaskedView {
             camera: *c,
             mask: m.data(),
         })
-        .collect();
+        .collect()
+}
+
+/// [`agreement`] with hulls carved at `grid` voxels in which a voxel may miss `misses` views.
+fn agreement_with(cameras: &[Pinhole], masks: &[Mask], grid: usize, misses: usize) -> Vec<f64> {
+    if cameras.len() < 2 {
+        return vec![1.0; cameras.len()];
+    }
+    let masked = masked_views(cameras, masks);
     let votes = hull::votes(&masked, grid, misses);
     cameras
         .iter()
@@ -423,14 +428,7 @@ fn consistency_of(cameras: &[Pinhole], masks: &[Mask], p: &MultiViewParams) -> V
         return vec![1.0; cameras.len()];
     }
     let raw = agreement_with(cameras, masks, p.hull_grid, 0);
-    let masked: Vec<MaskedView<'_>> = cameras
-        .iter()
-        .zip(masks)
-        .map(|(c, m)| MaskedView {
-            camera: *c,
-            mask: m.data(),
-        })
-        .collect();
+    let masked = masked_views(cameras, masks);
     let hull = hull::votes(&masked, p.hull_grid, 0).within(0);
     let consistent: Vec<Mask> = cameras
         .iter()

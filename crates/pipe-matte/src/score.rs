@@ -9,11 +9,12 @@
 //!   of the same sampler seed has `σ = 0`; a camera's frames against a separately shot plate
 //!   do not.
 //! * **shadow-like**: with the offset log-ratio `l_c = ln((I_c + k) / (B_c + k))`,
-//!   `max_c l_c - min_c l_c < shadow_max_spread + 3σ_l` (all channels scaled by the same factor,
-//!   i.e. the plate's hue is kept) and `mean_c l_c < shadow_max_log_gain + 3σ_l` (the pixel got
-//!   darker, not brighter), where `σ_l = σ / (min_c min(I_c, B_c) + k)` is the noise of a
-//!   log-ratio at the pixel's darkest channel: in a dark shadow a few levels of noise move the
-//!   ratios far. The offset `k` keeps the ratio of near-black pixels finite.
+//!   `max_c l_c - min_c l_c < shadow_max_spread + s` (all channels scaled by the same factor,
+//!   i.e. the plate's hue is kept) and `mean_c l_c < shadow_max_log_gain + s` (the pixel got
+//!   darker, not brighter). `s = 2 max_c σ_c`, with `σ_c = (σ/√2) √((I_c + k)⁻² + (B_c + k)⁻²)`
+//!   the noise of `l_c` when image and plate share the difference's noise: in a dark shadow a few
+//!   levels of noise move the ratios far. With noise (`σ > 0`) the test reads the pixel's 3×3
+//!   block means (noise `σ/3`). The offset `k` keeps the ratio of near-black pixels finite.
 //! * **object** = changed and not shadow-like ([`Class`]).
 //! * **block change**: a pixel unchanged by the first test is changed too when, in some
 //!   channel, both its own signed difference and its 3×3 block's mean signed difference exceed
@@ -152,14 +153,13 @@ fn classify_pixel(
     if !changed && (!t.block.is_finite() || own.iter().all(|d| d.abs() <= t.block)) {
         return Class::Unchanged;
     }
+    if changed && t.noise == 0.0 {
+        let rgb = |v: &[u8]| [0, 1, 2].map(|c| f32::from(v[c]));
+        return shadow_or_object(rgb(i), rgb(b), 0.0, t, p);
+    }
     let (mi, mb, n) = block_means(img, pl, (w, h), (x, y));
     if changed {
-        return if t.noise > 0.0 {
-            shadow_or_object(mi, mb, t.noise / n.sqrt(), t, p)
-        } else {
-            let rgb = |v: &[u8]| [0, 1, 2].map(|c| f32::from(v[c]));
-            shadow_or_object(rgb(i), rgb(b), 0.0, t, p)
-        };
+        return shadow_or_object(mi, mb, t.noise / n.sqrt(), t, p);
     }
     let shared = (0..3).any(|c| {
         let mean = mi[c] - mb[c];
