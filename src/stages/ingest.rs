@@ -333,6 +333,8 @@ fn run_ingest(p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageE
     let mut agreements = Vec::new();
     let mut consistencies = Vec::new();
     let mut warnings = Vec::new();
+    // Frames in which at least half of the cameras' masks are named.
+    let mut torn_frames = Vec::new();
     for frame_images in by_frame.values() {
         ctx.check_interrupted()?;
         let source = match plates.is_empty() {
@@ -349,6 +351,13 @@ fn run_ingest(p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageE
         )
         .map_err(StageError::failed)?;
         ctx.progress.inc(frame_images.len() as u64);
+        let named = done
+            .iter()
+            .filter(|d| d.empty || d.agreement.is_some_and(|(_, c)| c < CONSISTENCY_WARNING))
+            .count();
+        if done.len() >= 2 && 2 * named >= done.len() {
+            torn_frames.push(done[0].row.frame.to_string());
+        }
         for d in done {
             let (view, frame) = (Some(d.row.view), Some(d.row.frame));
             if let Some(iou) = d.iou {
@@ -408,6 +417,12 @@ fn run_ingest(p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageE
             warnings.len(),
             rows.len(),
             warnings.join("; ")
+        ));
+    }
+    if !torn_frames.is_empty() {
+        ctx.progress.warn(&format!(
+            "frames {}: at least half of the cameras' masks disagree; masks torn alike in every camera are what an object coloured like the floor, or like its own shadow, gives the matte (README, the multi-view matte); masks made elsewhere can be given as gt/masks/m_<cam>_<frame>.png with `ingest: {{matte: gt}}`",
+            torn_frames.join(", ")
         ));
     }
     let resized = if (w2, h2) == full {

@@ -262,6 +262,10 @@ fn a_shadow_toned_blob_on_its_shadow_is_torn_and_named() {
             .map(|a| a.0)
             .collect();
         assert!(torn.len() >= 6, "frame {frame}: {torn:?}");
+        assert!(
+            stderr.contains("frames 6, 12: at least half of the cameras' masks disagree"),
+            "{stderr}"
+        );
         for view in torn {
             assert!(
                 stderr.contains(&format!("camera {view} frame {frame}:")),
@@ -314,6 +318,11 @@ fn a_floor_coloured_object_is_torn_and_its_torn_masks_named() {
         }
     }
     println!("{named} of the {torn} masks under 0.9 IoU named");
+    // Every frame is torn in most cameras, and the warning says what that suggests.
+    assert!(
+        stderr.contains("frames 0, 5, 9, 13: at least half of the cameras' masks disagree"),
+        "{stderr}"
+    );
     assert!(
         torn >= 30,
         "{torn} torn: the matte mends this scene now; update the test"
@@ -390,6 +399,7 @@ fn torn_mask_is_reported_by_camera_and_frame() {
         assert_eq!(*view == 3, *c < 0.9, "{consistency:?}");
     }
     assert_eq!(stderr.matches("consistency 0.").count(), 1, "{stderr}");
+    assert!(!stderr.contains("at least half of the cameras"), "{stderr}");
 }
 
 /// A capture of four cameras around the object (the fixture's cameras 0, 3, 6 and 9, frames 0
