@@ -781,3 +781,18 @@ pub fn iou(a: &[u8], b: &[u8]) -> f64 {
         inter as f64 / union as f64
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The warning names the masks that `pipe_matte::consistency` ranks inconsistent: one
+    /// threshold, not two that may drift apart.
+    #[test]
+    fn the_warning_threshold_is_the_matte_s() {
+        assert_eq!(
+            CONSISTENCY_WARNING,
+            pipe_matte::MultiViewParams::default().consistency_threshold
+        );
+    }
+}

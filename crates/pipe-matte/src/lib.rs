@@ -7,10 +7,11 @@
 //! channel, while the object replaces the colour. Pipeline (thresholds in
 //! [`MatteParams`]):
 //!
-//! 1. per pixel (`score.rs`): object iff `max_c |I_c - B_c| > change_threshold` and not
-//!    shadow-like, where shadow-like means the log-ratios
+//! 1. per pixel (`score.rs`): object iff `max_c |I_c - B_c| > change_threshold` (or a change
+//!    its 3×3 block shares, `block_change_threshold`; both rise with the image's noise against
+//!    its plate) and not shadow-like, where shadow-like means the log-ratios
 //!    `l_c = ln((I_c + k) / (B_c + k))` have spread `max_c l_c - min_c l_c <
-//!    shadow_max_spread` and mean `< shadow_max_log_gain`;
+//!    shadow_max_spread` and mean `< shadow_max_log_gain` (widened by their noise);
 //! 2. 3x3 majority vote (`morphology.rs`);
 //! 3. drop object components smaller than `min_component_area`, fill enclosed holes of at
 //!    most `max_hole_area` pixels (`components.rs`);

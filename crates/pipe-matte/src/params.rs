@@ -4,14 +4,17 @@
 /// PAC-NeRF scenes (200x200 and 2x downscaled).
 #[derive(Debug, Clone, PartialEq)]
 pub struct MatteParams {
-    /// A pixel is a change candidate iff `max_c |I_c - B_c| > change_threshold`
-    /// (8-bit units). Absorbs the path tracer's noise between frame and plate.
+    /// A pixel is a change candidate iff `max_c |I_c - B_c|` exceeds this (8-bit units), or
+    /// 4σ where the image's noise against its plate, σ, is larger (`score.rs`). Absorbs the
+    /// path tracer's noise between frame and plate.
     pub change_threshold: u8,
-    /// A pixel whose own change is within `change_threshold` is still a change candidate when
-    /// the mean over its 3×3 block of the signed difference `I_c − B_c` exceeds this in some
-    /// channel (8-bit units): a change shared by a block (an object a few levels off the
-    /// plate's colour) stands out of per-pixel noise three times better. Such a pixel's shadow
-    /// test uses the block's mean colours. Values not below `change_threshold` disable it.
+    /// A pixel within `change_threshold` is still a change candidate when, in some channel,
+    /// both its own signed difference `I_c − B_c` and its 3×3 block's mean of it exceed this
+    /// (or 4σ/3) with the same sign (8-bit units): a change a whole block shares (an object a
+    /// few levels off the plate's colour) stands out of per-pixel noise three times better,
+    /// and a background pixel beside the outline is not taken by its neighbours. Such a
+    /// pixel's shadow test uses the block's mean colours. Values not below
+    /// `change_threshold` disable it.
     pub block_change_threshold: u8,
     /// Offset `k` in the shadow ratio `(I_c + k) / (B_c + k)`; keeps near-black pixels
     /// from producing huge log-ratios. Non-positive values are treated as tiny.
