@@ -351,14 +351,11 @@ fn run_ingest(p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageE
         )
         .map_err(StageError::failed)?;
         ctx.progress.inc(frame_images.len() as u64);
-        let named = done
-            .iter()
-            .filter(|d| d.empty || d.agreement.is_some_and(|(_, c)| c < CONSISTENCY_WARNING))
-            .count();
-        if done.len() >= 2 && 2 * named >= done.len() {
-            torn_frames.push(done[0].row.frame.to_string());
-        }
+        let (cameras, this_frame) = (done.len(), done.first().map(|d| d.row.frame));
+        // Masks of this frame named in the warning.
+        let mut named = 0;
         for d in done {
+            let mut flagged = false;
             let (view, frame) = (Some(d.row.view), Some(d.row.frame));
             if let Some(iou) = d.iou {
                 ious.push(iou);
@@ -374,6 +371,7 @@ fn run_ingest(p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageE
                         "camera {} frame {}: consistency {c:.2} (agreement {a:.2})",
                         d.row.view, d.row.frame
                     ));
+                    flagged = true;
                 }
             }
             if d.empty {
@@ -381,8 +379,16 @@ fn run_ingest(p: &IngestParams, ctx: &mut StageContext<'_>) -> Result<(), StageE
                     "camera {} frame {}: the mask is empty",
                     d.row.view, d.row.frame
                 ));
+                flagged = true;
             }
+            named += usize::from(flagged);
             rows.push(d.row);
+        }
+        if let Some(frame) = this_frame
+            && cameras >= 2
+            && 2 * named >= cameras
+        {
+            torn_frames.push(frame.to_string());
         }
     }
     rows.sort_by_key(|r| (r.view, r.frame));
@@ -639,10 +645,12 @@ fn frame_masks(
                 masks.push(gt);
             }
             let cameras: Vec<_> = loaded.iter().map(|l| l.camera).collect();
-            let params = pipe_matte::MultiViewParams::default();
-            let agreement = pipe_matte::agreement(&cameras, &wrapped, &params);
-            let consistency = pipe_matte::consistency(&cameras, &wrapped, &params);
-            Ok((masks, Some((agreement, consistency))))
+            let scores = pipe_matte::agreement_and_consistency(
+                &cameras,
+                &wrapped,
+                &pipe_matte::MultiViewParams::default(),
+            );
+            Ok((masks, Some(scores)))
         }
         MatteMode::Plate => {
             let views = loaded

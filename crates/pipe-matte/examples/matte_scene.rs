@@ -19,7 +19,7 @@ use std::process::ExitCode;
 
 use glam::{DMat3, DVec3};
 use pipe_matte::{
-    Mask, MultiViewParams, Pinhole, RgbImageView, View, agreement, consistency, iou, matte,
+    Mask, MultiViewParams, Pinhole, RgbImageView, View, agreement_and_consistency, iou, matte,
     matte_frame,
 };
 
@@ -136,8 +136,7 @@ fn run(
             })
             .collect::<Result<_, _>>()?;
         let cameras: Vec<Pinhole> = list.iter().map(|e| e.camera).collect();
-        let gt_agree = agreement(&cameras, &gts, params);
-        let gt_consistent = consistency(&cameras, &gts, params);
+        let (gt_agree, gt_consistent) = agreement_and_consistency(&cameras, &gts, params);
         for ((a, c), e) in gt_agree.iter().zip(&gt_consistent).zip(list) {
             gt_agreements.push((*a, e.cam, *frame));
             gt_consistencies.push((*c, e.cam, *frame));

@@ -46,7 +46,9 @@ pub use camera::Pinhole;
 pub use error::MatteError;
 pub use hull::{Hull, MaskedView, carve};
 pub use mask::{Mask, iou};
-pub use multiview::{FrameMatte, View, agreement, consistency, matte_frame};
+pub use multiview::{
+    FrameMatte, View, agreement, agreement_and_consistency, consistency, matte_frame,
+};
 pub use params::{MatteParams, MultiViewParams};
 pub use view::RgbImageView;
 

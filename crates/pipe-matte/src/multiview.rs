@@ -40,7 +40,7 @@ use rayon::prelude::*;
 
 use crate::camera::Pinhole;
 use crate::error::MatteError;
-use crate::hull::{self, Hull, MaskedView};
+use crate::hull::{self, Hull, MaskedView, Votes};
 use crate::mask::{Mask, iou};
 use crate::params::MultiViewParams;
 use crate::reach::ShadowReach;
@@ -172,8 +172,7 @@ pub fn matte_frame(views: &[View<'_>], params: &MultiViewParams) -> Result<Frame
         .collect();
     let masks = crate::refine::refine(views, &evidence, &proofs, masks, params);
     let cameras: Vec<Pinhole> = views.iter().map(|v| v.camera).collect();
-    let agreement = agreement(&cameras, &masks, params);
-    let consistency = consistency(&cameras, &masks, params);
+    let (agreement, consistency) = agreement_and_consistency(&cameras, &masks, params);
     Ok(FrameMatte {
         masks,
         agreement,
@@ -344,8 +343,12 @@ fn agreement_with(cameras: &[Pinhole], masks: &[Mask], grid: usize, misses: usiz
     if cameras.len() < 2 {
         return vec![1.0; cameras.len()];
     }
-    let masked = masked_views(cameras, masks);
-    let votes = hull::votes(&masked, grid, misses);
+    let votes = hull::votes(&masked_views(cameras, masks), grid, misses);
+    agreement_from(&votes, cameras, masks, misses)
+}
+
+/// [`agreement`] from the views' `votes` (at least two views), a voxel missing `misses`.
+fn agreement_from(votes: &Votes, cameras: &[Pinhole], masks: &[Mask], misses: usize) -> Vec<f64> {
     cameras
         .iter()
         .zip(masks)
@@ -358,6 +361,22 @@ fn agreement_with(cameras: &[Pinhole], masks: &[Mask], grid: usize, misses: usiz
             iou(m, &Mask::from_bits(m.width(), m.height(), &bits))
         })
         .collect()
+}
+
+/// [`agreement`] and [`consistency`] together, the hull's votes carved once for both when
+/// `hull_max_misses` is 0 (the default).
+pub fn agreement_and_consistency(
+    cameras: &[Pinhole],
+    masks: &[Mask],
+    p: &MultiViewParams,
+) -> (Vec<f64>, Vec<f64>) {
+    let consistency = consistency_with(cameras, masks, p);
+    let agreement = if p.hull_max_misses == 0 {
+        consistency.raw
+    } else {
+        agreement(cameras, masks, p)
+    };
+    (agreement, consistency.scores)
 }
 
 /// Per view, how far its mask agrees with the other views' masks against how far consistent
@@ -376,9 +395,21 @@ fn agreement_with(cameras: &[Pinhole], masks: &[Mask], grid: usize, misses: usiz
 /// Measured (`examples/matte_scene.rs`): the matte's masks on the sample scenes and on subsets
 /// of 3, 4 and 6 of torus-elastic's cameras score 0.95 and more.
 pub fn consistency(cameras: &[Pinhole], masks: &[Mask], p: &MultiViewParams) -> Vec<f64> {
+    consistency_with(cameras, masks, p).scores
+}
+
+/// What [`consistency_with`] gives: the scores, and the raw agreement of every view with
+/// all the others (hulls carved with no misses).
+struct Consistency {
+    scores: Vec<f64>,
+    raw: Vec<f64>,
+}
+
+/// [`consistency`], and the raw agreement it divides.
+fn consistency_with(cameras: &[Pinhole], masks: &[Mask], p: &MultiViewParams) -> Consistency {
     let whole = consistency_of(cameras, masks, p);
     let t = p.consistency_threshold;
-    if cameras.len() < 4 || whole.iter().all(|c| *c >= t) {
+    if cameras.len() < 4 || whole.scores.iter().all(|c| *c >= t) {
         return whole;
     }
     let without = |a: usize| -> (Vec<Pinhole>, Vec<Mask>) {
@@ -398,38 +429,44 @@ pub fn consistency(cameras: &[Pinhole], masks: &[Mask], p: &MultiViewParams) -> 
         .into_par_iter()
         .map(|a| {
             let (c, m) = without(a);
-            (a, consistency_of(&c, &m, p))
+            (a, consistency_of(&c, &m, p).scores)
         })
         .filter(|(_, rest)| rest.iter().all(|c| *c >= t))
         .max_by(|x, y| {
             let low = |v: &[f64]| v.iter().copied().fold(f64::INFINITY, f64::min);
             low(&x.1).total_cmp(&low(&y.1)).then(y.0.cmp(&x.0))
         });
-    match best {
-        Some((culprit, rest)) => {
-            let mut rest = rest.into_iter();
-            (0..cameras.len())
-                .map(|i| {
-                    if i == culprit {
-                        whole[i]
-                    } else {
-                        rest.next().expect("one score per other view")
-                    }
-                })
-                .collect()
-        }
-        None => whole,
+    let Some((culprit, rest)) = best else {
+        return whole;
+    };
+    let mut rest = rest.into_iter();
+    let scores = (0..cameras.len())
+        .map(|i| {
+            if i == culprit {
+                whole.scores[i]
+            } else {
+                rest.next().expect("one score per other view")
+            }
+        })
+        .collect();
+    Consistency {
+        scores,
+        raw: whole.raw,
     }
 }
 
-/// [`consistency`] of all views together, without leaving any out.
-fn consistency_of(cameras: &[Pinhole], masks: &[Mask], p: &MultiViewParams) -> Vec<f64> {
+/// [`consistency`] of all views together, without leaving any out. One carving of the views'
+/// votes gives both the raw agreement and the hull of all masks.
+fn consistency_of(cameras: &[Pinhole], masks: &[Mask], p: &MultiViewParams) -> Consistency {
     if cameras.len() < 2 {
-        return vec![1.0; cameras.len()];
+        return Consistency {
+            scores: vec![1.0; cameras.len()],
+            raw: vec![1.0; cameras.len()],
+        };
     }
-    let raw = agreement_with(cameras, masks, p.hull_grid, 0);
-    let masked = masked_views(cameras, masks);
-    let hull = hull::votes(&masked, p.hull_grid, 0).within(0);
+    let votes = hull::votes(&masked_views(cameras, masks), p.hull_grid, 0);
+    let raw = agreement_from(&votes, cameras, masks, 0);
+    let hull = votes.within(0);
     let consistent: Vec<Mask> = cameras
         .iter()
         .zip(masks)
@@ -443,8 +480,10 @@ fn consistency_of(cameras: &[Pinhole], masks: &[Mask], p: &MultiViewParams) -> V
         })
         .collect();
     let reachable = agreement_with(cameras, &consistent, p.hull_grid, 0);
-    raw.iter()
+    let scores = raw
+        .iter()
         .zip(reachable)
         .map(|(a, r)| if r > 0.0 { (a / r).min(1.0) } else { 0.0 })
-        .collect()
+        .collect();
+    Consistency { scores, raw }
 }
