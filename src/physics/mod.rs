@@ -16,6 +16,7 @@ pub mod object;
 pub mod params;
 pub mod particles;
 pub mod pose;
+pub mod profile;
 pub mod rollout;
 pub mod step_search;
 pub mod torque_free;

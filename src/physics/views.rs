@@ -32,6 +32,9 @@ pub struct ViewsLoss<'a> {
     opts: pipe_render::RenderOptions<f32>,
     /// Mean PSNR (dB) of each frame's views at the last evaluation.
     pub psnr: BTreeMap<u16, f64>,
+    /// Loss of each (frame, view) at its last evaluation (a view's own loss, not divided by
+    /// the frame's view count).
+    pub view_loss: super::profile::ViewLosses,
 }
 
 impl std::fmt::Debug for ViewsLoss<'_> {
@@ -66,6 +69,7 @@ impl<'a> ViewsLoss<'a> {
             weights,
             opts: crate::scene::targets::over_black(),
             psnr: BTreeMap::new(),
+            view_loss: BTreeMap::new(),
         }
     }
 
@@ -119,6 +123,7 @@ impl FrameLoss for ViewsLoss<'_> {
             }
             loss += l.loss / n;
             psnr += l.psnr / n;
+            self.view_loss.insert((frame, view), l.loss);
             if let Some(grad) = grad.as_deref_mut() {
                 // The frame's loss is the mean over its views.
                 let s = (1.0 / n) as f32;

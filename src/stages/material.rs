@@ -30,6 +30,7 @@ use crate::physics::fit::{FitError, Inputs, PrecisionParam};
 use crate::physics::material_field::{FieldSettings, colour_of, percentiles, write_weights};
 use crate::physics::object::{Resolution, sim_yaml};
 use crate::physics::params::{MaterialValues, Param};
+use crate::physics::profile::{ParamProfile, ViewLosses};
 use crate::physics::rollout::{
     FrameGradient, NextMaterial, Rollout, RolloutError, Truncate, Wants, Work, is_fluid,
 };
@@ -158,6 +159,11 @@ pub struct MaterialParams {
     /// How `model: auto` decides.
     #[serde(default)]
     pub auto: AutoSettings,
+    /// How closely the frames pin each learned parameter, measured after the fit
+    /// ([`crate::physics::profile`]: each parameter moved alone by growing steps, scored on
+    /// the training views; `material.json` `profile`).
+    #[serde(default)]
+    pub profile: crate::physics::profile::ProfileParams,
 }
 
 fn epochs() -> u32 {
@@ -254,6 +260,11 @@ pub struct MaterialResult {
     /// `model: auto`: the two models' held-out losses and which was kept.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub selection: Option<ModelSelection>,
+    /// How closely the frames pin each learned parameter that is one number (with a field,
+    /// those it does not vary): the moves tried on each side of the fit, their loss rise and
+    /// the training cameras' agreement, and the values that bound it ([`crate::physics::profile`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub profile: Vec<ParamProfile>,
 }
 
 /// The learned field in `material.json`.
@@ -280,7 +291,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 18;
+    const VERSION: u32 = 19;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 
@@ -326,6 +337,9 @@ impl TypedStage for MaterialStage {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(name, format!("must be finite and >= 0, found {v}"));
             }
+        }
+        if let Some((field, message)) = p.profile.invalid() {
+            return bad(&format!("profile.{field}"), message);
         }
         if let Err((field, message)) = Resolution::check(p.cells, p.dx) {
             return bad(field, message);
@@ -751,6 +765,16 @@ impl TypedStage for MaterialStage {
             .run(loss, Wants::Loss)
             .map_err(|e| fail(p.epochs, e))
         };
+        // How closely the frames pin each parameter of the global fit; where a move of the
+        // profile lowers the loss with the cameras agreeing, the fit goes on from there.
+        let profile = if p.profile.enabled {
+            profile_and_polish(p, ctx, &learned, &mut global, &work, |m| {
+                eval(m, None, &mut loss)?;
+                Ok(loss.view_loss.clone())
+            })?
+        } else {
+            Vec::new()
+        };
         let field_applies =
             crate::stages::material_field::outputs(family, &learned, &p.field.vary, ctx.name);
         let (fitted, selection) = match p.model {
@@ -1021,6 +1045,7 @@ impl TypedStage for MaterialStage {
             substeps: final_out.substeps.clone(),
             field,
             selection,
+            profile,
         };
         crate::io::write_json(&ctx.out_dir.join("material.json"), &out)
             .map_err(StageError::failed)?;
@@ -1068,8 +1093,107 @@ impl TypedStage for MaterialStage {
     }
 }
 
-/// The learned values next to the scene's ground truth, when it has one.
-/// The family's values of a fitted field with E (and ν) at the median of its particles'.
+/// How closely the frames pin each parameter of the global fit `global`
+/// ([`crate::physics::profile`]); where a move of the profile lowers the loss with the cameras
+/// agreeing, the fit goes on from there and is profiled again (at most `profile.rounds`
+/// times), then takes each parameter's parabola vertex that lowers the loss.
+/// `eval` scores a material on the fit's views and returns each (frame, view)'s loss.
+fn profile_and_polish(
+    p: &MaterialParams,
+    ctx: &mut StageContext<'_>,
+    learned: &[Param],
+    global: &mut MaterialValues,
+    work: &Work,
+    mut eval: impl FnMut(&MaterialValues) -> Result<ViewLosses, StageError>,
+) -> Result<Vec<ParamProfile>, StageError> {
+    use crate::physics::profile::{best_better, paired, profile, vertex};
+    let mut rounds = 0;
+    let names = learned
+        .iter()
+        .map(|q| q.name())
+        .collect::<Vec<_>>()
+        .join(", ");
+    let (prof, fit) = loop {
+        let at: Vec<f64> = learned
+            .iter()
+            .map(|q| global.get(*q).unwrap_or(0.0))
+            .collect();
+        ctx.progress.log(&format!(
+            "material profile: each of {names} moved alone about the fit, on the training views (cameras agree at t >= {})",
+            p.profile.t_min
+        ));
+        let from = global.clone();
+        let (prof, fit) = profile(
+            &p.profile,
+            learned,
+            &at,
+            |values| {
+                let mut m = from.clone();
+                for (q, v) in learned.iter().zip(values) {
+                    m.values.insert(*q, *v);
+                }
+                eval(&m)
+            },
+            |line| ctx.progress.log(&format!("    {line}")),
+        )?;
+        if let Some(note) = budget_spent(p, work, "the profile", p.epochs) {
+            ctx.progress.log(&note);
+            break (prof, None);
+        }
+        match best_better(&prof) {
+            Some((k, value, rise)) if rounds < p.profile.rounds => {
+                rounds += 1;
+                global.values.insert(learned[k], value);
+                ctx.progress.log(&format!(
+                    "material profile: {} {value:.4e} lowers the loss by {:.2} % with the cameras agreeing: the fit goes on from there (round {rounds} of at most {})",
+                    learned[k].name(),
+                    -rise,
+                    p.profile.rounds
+                ));
+            }
+            _ => break (prof, Some(fit)),
+        }
+    };
+    // The vertex of the parabola through each bracketed minimum, one parameter at a time
+    // (taken together they interact: E and the yield stress of a plasticine).
+    let mut vertices = 0u32;
+    if let Some(mut fit) = fit.filter(|_| p.profile.rounds > 0) {
+        for (q, pr) in learned.iter().zip(&prof) {
+            let Some(v) = vertex(pr, *q) else { continue };
+            let mut m = global.clone();
+            m.values.insert(*q, v);
+            let at = eval(&m)?;
+            let (rise, t) = paired(&fit, &at);
+            let taken = rise < 0.0;
+            ctx.progress.log(&format!(
+                "material profile: the parabola's vertex {} {v:.4e} {} the loss by {:.3} % (cameras t = {t:.2}): {}",
+                q.name(),
+                if taken { "lowers" } else { "raises" },
+                rise.abs(),
+                if taken { "taken" } else { "not taken" }
+            ));
+            if taken {
+                *global = m;
+                fit = at;
+                vertices += 1;
+            }
+        }
+    }
+    for (metric, value) in [
+        ("profile_moves", f64::from(rounds)),
+        ("profile_vertices_taken", f64::from(vertices)),
+    ] {
+        ctx.metric(MetricRow {
+            epoch: None,
+            view: None,
+            frame: None,
+            metric: metric.into(),
+            value,
+        });
+    }
+    Ok(prof)
+}
+
 /// The frames in closed form of `object`'s rollouts (`closed_form`; not with a velocity
 /// field, whose residual deforms the body).
 fn free_frames(
@@ -1182,6 +1306,7 @@ pub(crate) fn budget_spent(
     })
 }
 
+/// The family's values of a fitted field with E (and ν) at the median of its particles'.
 fn at_field_median(f: &crate::stages::material_field::FieldFit) -> MaterialValues {
     let log_e: Vec<f64> = f.moduli.e.iter().map(|e| e.log10()).collect();
     let mut m = f.values.clone();
@@ -1191,6 +1316,7 @@ fn at_field_median(f: &crate::stages::material_field::FieldFit) -> MaterialValue
     m
 }
 
+/// The learned values next to the scene's ground truth, when it has one.
 fn report(out: &MaterialResult, scene: &SceneSpec) -> String {
     let gt = crate::physics::fit::ground_truth(scene);
     let truth = |key: &str| gt.as_ref().and_then(|g| g[key].as_f64());

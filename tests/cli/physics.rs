@@ -851,6 +851,46 @@ fn the_demo_at_draft_learns_velocity_and_e_from_ten_times_too_stiff() {
     let err = (DVec3::from_array(v) - DVec3::new(0.15, -0.3, 0.1)).length();
     assert!(err <= 0.05, "v0 {v:?}: {err} m/s off");
     assert!(m["loss_final"].as_f64().unwrap() < m["loss_guess"].as_f64().unwrap());
+    // The profile of the fit: E and ν, each moved alone. E is pinned by the frames on both
+    // sides (the torus's bounce: a quarter decade moves the loss by a third), its bounds about
+    // the profiled value and the result; every move's statistics are finite.
+    let profile: Vec<pipe::physics::profile::ParamProfile> =
+        serde_json::from_value(m["profile"].clone()).unwrap();
+    let names: Vec<&str> = profile.iter().map(|p| p.param.as_str()).collect();
+    assert_eq!(names, ["E", "nu"], "{}", m["profile"]);
+    let pe = &profile[0];
+    // The fit may then take the parabola's vertex, within half a step (0.125 decades).
+    assert!(
+        (e / pe.value).log10().abs() <= 0.125 + 1e-12,
+        "{e} {}",
+        pe.summary()
+    );
+    assert_eq!(
+        pe.ends,
+        [pipe::physics::profile::SideEnd::Bounded; 2],
+        "{}",
+        pe.summary()
+    );
+    let [lo, hi] = pe.bounds.map(Option::unwrap);
+    assert!(
+        lo < pe.value && pe.value < hi && lo < e && e < hi && hi / lo <= 100.0,
+        "{}",
+        pe.summary()
+    );
+    for p in &profile {
+        for mv in p.below.iter().chain(&p.above) {
+            assert!(
+                mv.rise_pct.is_finite() && mv.t.is_finite(),
+                "{}",
+                p.summary()
+            );
+        }
+        assert!(
+            !p.below.is_empty() && !p.above.is_empty(),
+            "{}",
+            p.summary()
+        );
+    }
     // Only the family's parameters: no fluid or plastic ones.
     assert!(m["viscosity"].is_null() && m["yield_stress"].is_null());
     for f in ["scene.sim.yaml", "particles.arrow", "metrics.arrow"] {

@@ -254,6 +254,7 @@ fn scene_section(
                     (text::value(&p.truth), true),
                     (text::opt(p.error), true),
                     (p.error_kind.clone(), false),
+                    (text::or_dash(&p.bounded), false),
                 ]
             })
             .collect();
@@ -266,6 +267,7 @@ fn scene_section(
                 "ground truth",
                 "error",
                 "error is",
+                "bounded by the frames (material profile)",
             ],
             &rows,
         );

@@ -84,6 +84,7 @@ fn scene(out: &mut String, s: &SceneReport) {
                 "ground truth",
                 "error",
                 "error is",
+                "bounded by the frames (material profile)",
             ],
         );
         for p in &s.parameters {
@@ -96,6 +97,7 @@ fn scene(out: &mut String, s: &SceneReport) {
                     text::value(&p.truth),
                     text::opt(p.error),
                     p.error_kind.clone(),
+                    text::or_dash(&p.bounded),
                 ],
             );
         }

@@ -137,6 +137,8 @@ pub struct ParameterRow {
     pub error: Option<f64>,
     /// What the error measures.
     pub error_kind: String,
+    /// How closely the frames bound it (`material.json` `profile`; empty when not profiled).
+    pub bounded: String,
 }
 
 /// One per-epoch curve.
@@ -296,6 +298,7 @@ fn parameters(
                     truth: truth.get(name).cloned().unwrap_or(Value::Null),
                     error: number(&errors, name),
                     error_kind: error_kind(name),
+                    bounded: String::new(),
                 });
             }
         }
@@ -307,6 +310,7 @@ fn parameters(
                 truth: e.get("ground_truth_v0").cloned().unwrap_or(Value::Null),
                 error: number(&errors, "v0_m_s"),
                 error_kind: error_kind("v0"),
+                bounded: String::new(),
             });
         }
         if let Some(w) = e.get("angular_velocity") {
@@ -320,8 +324,10 @@ fn parameters(
                     .unwrap_or(Value::Null),
                 error: number(&errors, "angular_velocity_rad_s"),
                 error_kind: "|ω − ω_true| (rad/s)".into(),
+                bounded: String::new(),
             });
         }
+        with_bounds(run, &mut rows)?;
         return Ok(rows);
     }
     if let Some((_, dir)) = entry(run, "material") {
@@ -342,6 +348,7 @@ fn parameters(
                     truth: Value::Null,
                     error: None,
                     error_kind: error_kind(name),
+                    bounded: String::new(),
                 });
             }
         }
@@ -356,10 +363,63 @@ fn parameters(
                 truth: Value::Null,
                 error: None,
                 error_kind: error_kind("v0"),
+                bounded: String::new(),
             });
         }
     }
+    with_bounds(run, &mut rows)?;
     Ok(rows)
+}
+
+/// Fills each row's `bounded` from the `material` entry's profile.
+fn with_bounds(run: &RunSummary, rows: &mut [ParameterRow]) -> Result<(), ReportError> {
+    let Some((_, dir)) = entry(run, "material") else {
+        return Ok(());
+    };
+    let m = read_json(&dir.join("material.json"))?;
+    let Some(profile) = m.get("profile").and_then(Value::as_array) else {
+        return Ok(());
+    };
+    for p in profile {
+        let Some(name) = p.get("param").and_then(Value::as_str) else {
+            continue;
+        };
+        if let Some(row) = rows.iter_mut().find(|r| r.name == name) {
+            row.bounded = bounds_text(p);
+        }
+    }
+    Ok(())
+}
+
+/// One side of a parameter's profile in words: `from 5.73e5` / `to 1.81e6` where the frames
+/// bound it, else how far it was tried.
+fn bounds_text(p: &Value) -> String {
+    let side = |k: usize| -> String {
+        let (key, bound, open) = if k == 0 {
+            ("below", "from", "down to")
+        } else {
+            ("above", "to", "up to")
+        };
+        let end = p
+            .get("ends")
+            .and_then(|e| e.get(k))
+            .and_then(Value::as_str)
+            .unwrap_or("");
+        let last = p
+            .get(key)
+            .and_then(Value::as_array)
+            .and_then(|m| m.last())
+            .and_then(|m| m.get("value"))
+            .and_then(Value::as_f64);
+        match (end, last) {
+            ("bounded", Some(v)) => format!("{bound} {}", crate::text::num(v)),
+            ("better", Some(v)) => format!("{} is better (fit stopped short)", crate::text::num(v)),
+            ("range", _) => format!("{open} the end of its range"),
+            (_, Some(v)) => format!("not bounded {open} {}", crate::text::num(v)),
+            _ => "not profiled".into(),
+        }
+    };
+    format!("{}; {}", side(0), side(1))
 }
 
 /// Build one scene's report; strips and GIFs are referenced relative to `out`, figures are
@@ -698,4 +758,36 @@ pub fn build(runs: &[RunSummary], out: &Path) -> Result<(Report, Vec<Vec<Drawn>>
         },
         drawn,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_profile_reads_as_the_values_that_bound_the_parameter() {
+        let p = serde_json::json!({
+            "param": "E", "unit": "decades", "value": 1.0e6,
+            "below": [{"step": -0.25, "value": 5.6234e5, "rise_pct": 30.0, "t": 12.0}],
+            "above": [
+                {"step": 0.25, "value": 1.7783e6, "rise_pct": 0.1, "t": 0.4},
+                {"step": 0.5, "value": 3.1623e6, "rise_pct": 0.2, "t": 1.1},
+                {"step": 1.0, "value": 1.0e7, "rise_pct": 0.3, "t": 1.5}
+            ],
+            "ends": ["bounded", "open"], "bounds": [5.6234e5, null]
+        });
+        assert_eq!(bounds_text(&p), "from 5.623e5; not bounded up to 1.000e7");
+        let short = serde_json::json!({
+            "below": [{"step": -0.025, "value": 0.275, "rise_pct": -1.0, "t": -5.0}],
+            "above": [], "ends": ["better", "range"]
+        });
+        assert_eq!(
+            bounds_text(&short),
+            "0.2750 is better (fit stopped short); up to the end of its range"
+        );
+        assert_eq!(
+            bounds_text(&serde_json::json!({})),
+            "not profiled; not profiled"
+        );
+    }
 }

@@ -25,6 +25,11 @@ pub fn num(v: f64) -> String {
     }
 }
 
+/// A text, `—` when empty.
+pub fn or_dash(s: &str) -> String {
+    if s.is_empty() { "—".into() } else { s.into() }
+}
+
 /// An optional number, `—` when absent.
 pub fn opt(v: Option<f64>) -> String {
     v.map(num).unwrap_or_else(|| "—".into())
