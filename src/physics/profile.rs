@@ -183,6 +183,16 @@ pub struct ParamProfile {
 }
 
 impl ParamProfile {
+    /// The move of side `k` (0 below, 1 above) that the cameras agree is better and that
+    /// lowers the loss most.
+    pub fn best(&self, k: usize) -> Option<&Move> {
+        let moves = if k == 0 { &self.below } else { &self.above };
+        moves
+            .iter()
+            .filter(|m| m.rise_pct < 0.0)
+            .min_by(|a, b| a.rise_pct.total_cmp(&b.rise_pct))
+    }
+
     /// One line for the log: `E 1.0182e6: from 5.7255e5 (-0.25 decades) to 1.8106e6 (+0.25)`.
     pub fn summary(&self) -> String {
         let side = |k: usize| -> String {
@@ -192,7 +202,11 @@ impl ParamProfile {
             } else {
                 ("to", "up to")
             };
-            match (self.ends[k], moves.last()) {
+            let shown = match self.ends[k] {
+                SideEnd::Better => self.best(k),
+                _ => moves.last(),
+            };
+            match (self.ends[k], shown) {
                 (SideEnd::Bounded, Some(m)) => {
                     format!("{bound} {:.4e} ({:+} {})", m.value, m.step, self.unit)
                 }
@@ -225,14 +239,9 @@ pub fn best_better(profiles: &[ParamProfile]) -> Option<(usize, f64, f64)> {
         .iter()
         .enumerate()
         .flat_map(|(k, p)| {
-            p.ends.iter().enumerate().filter_map(move |(s, end)| {
-                let moves = if s == 0 { &p.below } else { &p.above };
-                match (end, moves.last()) {
-                    (SideEnd::Better, Some(m)) if m.rise_pct < 0.0 => {
-                        Some((k, m.value, m.rise_pct))
-                    }
-                    _ => None,
-                }
+            (0..2).filter_map(move |s| match p.ends[s] {
+                SideEnd::Better => p.best(s).map(|m| (k, m.value, m.rise_pct)),
+                _ => None,
             })
         })
         .min_by(|a, b| a.2.total_cmp(&b.2))
@@ -322,18 +331,31 @@ pub fn profile<E>(
         for (s, sign) in [-1.0, 1.0].into_iter().enumerate() {
             for &step in params.steps(q) {
                 let Some(v) = moved(q, at[k], sign * step) else {
-                    ends[s] = SideEnd::Range;
+                    if ends[s] != SideEnd::Better {
+                        ends[s] = SideEnd::Range;
+                    }
                     break;
                 };
                 let mut values = at.to_vec();
                 values[k] = v;
                 let (rise_pct, t) = paired(&fit, &eval(&values)?);
+                let lowest = sides[s]
+                    .iter()
+                    .map(|m| m.rise_pct)
+                    .fold(f64::INFINITY, f64::min);
                 sides[s].push(Move {
                     step: sign * step,
                     value: v,
                     rise_pct,
                     t,
                 });
+                if ends[s] == SideEnd::Better {
+                    // A better side is followed while each step lowers the loss further.
+                    if rise_pct < lowest {
+                        continue;
+                    }
+                    break;
+                }
                 if t >= params.t_min {
                     ends[s] = SideEnd::Bounded;
                     bounds[s] = Some(v);
@@ -341,7 +363,6 @@ pub fn profile<E>(
                 }
                 if t <= -params.t_min {
                     ends[s] = SideEnd::Better;
-                    break;
                 }
             }
         }
@@ -441,11 +462,21 @@ mod tests {
             .unwrap()
             .0;
         assert_eq!(short[0].ends, [SideEnd::Bounded, SideEnd::Better]);
+        // The better side is followed while the loss falls: +0.25, +0.5 (the minimum), +1.
+        let steps: Vec<f64> = short[0].above.iter().map(|m| m.step).collect();
+        assert_eq!(steps, [0.25, 0.5, 1.0]);
         let (k, v, rise) = best_better(&short).unwrap();
         assert_eq!(k, 0);
         assert!(
-            (v - 10f64.powf(6.25)).abs() < 10.0 && rise < 0.0,
+            (v - 10f64.powf(6.5)).abs() < 10.0 && rise < 0.0,
             "{v} {rise}"
+        );
+        assert!(
+            short[0]
+                .summary()
+                .contains("3.1623e6 (+0.5 decades) is better"),
+            "{}",
+            short[0].summary()
         );
         // At the minimum nothing is better.
         let at = profile(

@@ -405,12 +405,16 @@ fn bounds_text(p: &Value) -> String {
             .and_then(|e| e.get(k))
             .and_then(Value::as_str)
             .unwrap_or("");
-        let last = p
-            .get(key)
-            .and_then(Value::as_array)
-            .and_then(|m| m.last())
-            .and_then(|m| m.get("value"))
-            .and_then(Value::as_f64);
+        let moves = p.get(key).and_then(Value::as_array);
+        let value = |m: &Value| m.get("value").and_then(Value::as_f64);
+        let rise = |m: &Value| m.get("rise_pct").and_then(Value::as_f64).unwrap_or(0.0);
+        // A better side shows its best move, the others their last.
+        let last = match end {
+            "better" => moves
+                .and_then(|m| m.iter().min_by(|a, b| rise(a).total_cmp(&rise(b))))
+                .and_then(value),
+            _ => moves.and_then(|m| m.last()).and_then(value),
+        };
         match (end, last) {
             ("bounded", Some(v)) => format!("{bound} {}", crate::text::num(v)),
             ("better", Some(v)) => format!("{} is better (fit stopped short)", crate::text::num(v)),
@@ -778,7 +782,10 @@ mod tests {
         });
         assert_eq!(bounds_text(&p), "from 5.623e5; not bounded up to 1.000e7");
         let short = serde_json::json!({
-            "below": [{"step": -0.025, "value": 0.275, "rise_pct": -1.0, "t": -5.0}],
+            "below": [
+                {"step": -0.025, "value": 0.275, "rise_pct": -1.0, "t": -5.0},
+                {"step": -0.05, "value": 0.25, "rise_pct": -0.5, "t": -3.0}
+            ],
             "above": [], "ends": ["better", "range"]
         });
         assert_eq!(
