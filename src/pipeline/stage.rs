@@ -76,6 +76,19 @@ pub struct MetricRow {
     pub value: f64,
 }
 
+impl MetricRow {
+    /// A value of the whole stage (no epoch, view or frame).
+    pub fn of_stage(metric: &str, value: f64) -> Self {
+        Self {
+            epoch: None,
+            view: None,
+            frame: None,
+            metric: metric.into(),
+            value,
+        }
+    }
+}
+
 /// An `f64` in JSON: a number when finite, `"NaN"`, `"inf"` or `"-inf"` otherwise (a metric
 /// such as the PSNR of identical images is infinite; a checkpoint must keep it).
 mod number_or_text {

@@ -579,13 +579,7 @@ impl TypedStage for Evaluate {
             ("tracking_last_frame_m", result.tracking_last_frame_m),
         ] {
             if let Some(value) = value {
-                ctx.metric(MetricRow {
-                    epoch: None,
-                    view: None,
-                    frame: None,
-                    metric: metric.into(),
-                    value,
-                });
+                ctx.metric(MetricRow::of_stage(metric, value));
             }
         }
         if let Some(errors) = &result.errors {

@@ -409,13 +409,7 @@ fn from_points(p: &InitParams, ctx: &mut StageContext<'_>) -> Result<(), StageEr
         path.display(),
         positions.len()
     ));
-    ctx.metric(MetricRow {
-        epoch: None,
-        view: None,
-        frame: None,
-        metric: "gaussians".into(),
-        value: n as f64,
-    });
+    ctx.metric(MetricRow::of_stage("gaussians", n as f64));
     Ok(())
 }
 
@@ -440,13 +434,7 @@ fn from_dataset(ctx: &mut StageContext<'_>) -> Result<(), StageError> {
         g.sh_degree,
         g.len() - moving
     ));
-    ctx.metric(MetricRow {
-        epoch: None,
-        view: None,
-        frame: None,
-        metric: "gaussians".into(),
-        value: g.len() as f64,
-    });
+    ctx.metric(MetricRow::of_stage("gaussians", g.len() as f64));
     Ok(())
 }
 

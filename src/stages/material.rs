@@ -939,13 +939,7 @@ impl TypedStage for MaterialStage {
             ("wall_s_field", started.elapsed().as_secs_f64() - global_s),
             ("work_particle_substeps", work.done() as f64),
         ] {
-            ctx.metric(MetricRow {
-                epoch: None,
-                view: None,
-                frame: None,
-                metric: metric.into(),
-                value,
-            });
+            ctx.metric(MetricRow::of_stage(metric, value));
         }
         let result = fitted
             .as_ref()
@@ -963,13 +957,7 @@ impl TypedStage for MaterialStage {
             ("loss_final", final_out.loss()),
             ("train_psnr_final", psnr),
         ] {
-            ctx.metric(MetricRow {
-                epoch: None,
-                view: None,
-                frame: None,
-                metric: metric.into(),
-                value,
-            });
+            ctx.metric(MetricRow::of_stage(metric, value));
         }
         let spec = result.spec();
         let field = match (&fitted, loss_global) {
@@ -1187,13 +1175,7 @@ fn profile_and_polish(
         ("profile_moves", f64::from(rounds)),
         ("profile_vertices_taken", f64::from(vertices)),
     ] {
-        ctx.metric(MetricRow {
-            epoch: None,
-            view: None,
-            frame: None,
-            metric: metric.into(),
-            value,
-        });
+        ctx.metric(MetricRow::of_stage(metric, value));
     }
     Ok(prof)
 }

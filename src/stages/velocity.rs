@@ -864,13 +864,7 @@ impl TypedStage for Velocity {
             ("loss_final", loss_final),
             ("work_particle_substeps", work.done() as f64),
         ] {
-            ctx.metric(MetricRow {
-                epoch: None,
-                view: None,
-                frame: None,
-                metric: metric.into(),
-                value,
-            });
+            ctx.metric(MetricRow::of_stage(metric, value));
         }
         let truth = crate::physics::fit::ground_truth(ctx.scene)
             .and_then(|gt| serde_json::from_value::<[f64; 3]>(gt["v0"].clone()).ok());

@@ -123,13 +123,7 @@ pub(super) fn write(t: &PhysdreamerScene, ctx: &mut StageContext<'_>) -> Result<
         describe(&t.moving_part, &parts.moving_set, "moving part"),
     ));
     let mut metric = |name: &str, value: f64| {
-        ctx.metric(MetricRow {
-            epoch: None,
-            view: None,
-            frame: None,
-            metric: name.into(),
-            value,
-        });
+        ctx.metric(MetricRow::of_stage(name, value));
     };
     metric("gaussians", g.len() as f64);
     metric("object_gaussians", n_object as f64);
