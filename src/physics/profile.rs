@@ -43,8 +43,9 @@ pub struct ProfileParams {
     /// The cameras' paired t-statistic from which a move counts as resolved.
     #[serde(default = "t_min")]
     pub t_min: f64,
-    /// Moves the fit may take where the profile finds a better value (the cameras agreeing at
-    /// `t <= -t_min`), the profile taken again after each; 0 only reports.
+    /// Moves the fit may take where the profile finds a better value of a modulus, yield stress
+    /// or viscosity (the cameras agreeing at `t <= -t_min`), the profile taken again after
+    /// each; 0 only reports.
     #[serde(default = "rounds")]
     pub rounds: u32,
 }
@@ -232,12 +233,16 @@ impl ParamProfile {
     }
 }
 
-/// The move the cameras agree lowers the loss most, over every parameter's profile: (index
-/// of the parameter, its value there, relative rise %, negative).
-pub fn best_better(profiles: &[ParamProfile]) -> Option<(usize, f64, f64)> {
+/// The move the cameras agree lowers the loss most, over the profiles of the parameters
+/// `eligible` accepts: (index of the parameter, its value there, relative rise %, negative).
+pub fn best_better(
+    profiles: &[ParamProfile],
+    eligible: impl Fn(usize) -> bool,
+) -> Option<(usize, f64, f64)> {
     profiles
         .iter()
         .enumerate()
+        .filter(|(k, _)| eligible(*k))
         .flat_map(|(k, p)| {
             (0..2).filter_map(move |s| match p.ends[s] {
                 SideEnd::Better => p.best(s).map(|m| (k, m.value, m.rise_pct)),
@@ -465,7 +470,8 @@ mod tests {
         // The better side is followed while the loss falls: +0.25, +0.5 (the minimum), +1.
         let steps: Vec<f64> = short[0].above.iter().map(|m| m.step).collect();
         assert_eq!(steps, [0.25, 0.5, 1.0]);
-        let (k, v, rise) = best_better(&short).unwrap();
+        let (k, v, rise) = best_better(&short, |_| true).unwrap();
+        assert_eq!(best_better(&short, |_| false), None);
         assert_eq!(k, 0);
         assert!(
             (v - 10f64.powf(6.5)).abs() < 10.0 && rise < 0.0,
@@ -488,7 +494,7 @@ mod tests {
         )
         .unwrap()
         .0;
-        assert_eq!(best_better(&at), None);
+        assert_eq!(best_better(&at, |_| true), None);
         // ν 0.47: a step of 0.025 up leaves (0, 0.49).
         let nu = profile(
             &p,
