@@ -780,6 +780,8 @@ impl TypedStage for MaterialStage {
         } else {
             Vec::new()
         };
+        // The profile's wall time (s), after the global phase's.
+        let profile_s = started.elapsed().as_secs_f64() - global_s;
         let field_applies =
             crate::stages::material_field::outputs(family, &learned, &p.field.vary, ctx.name);
         let (fitted, selection) = match p.model {
@@ -937,7 +939,11 @@ impl TypedStage for MaterialStage {
         // Wall time of each phase (s; the global one from this run's first epoch on).
         for (metric, value) in [
             ("wall_s_global", global_s),
-            ("wall_s_field", started.elapsed().as_secs_f64() - global_s),
+            ("wall_s_profile", profile_s),
+            (
+                "wall_s_field",
+                started.elapsed().as_secs_f64() - global_s - profile_s,
+            ),
             ("work_particle_substeps", work.done() as f64),
         ] {
             ctx.metric(MetricRow::of_stage(metric, value));
