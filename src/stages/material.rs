@@ -260,9 +260,9 @@ pub struct MaterialResult {
     /// `model: auto`: the two models' held-out losses and which was kept.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub selection: Option<ModelSelection>,
-    /// How closely the frames pin each learned parameter that is one number (with a field,
-    /// those it does not vary): the moves tried on each side of the fit, their loss rise and
-    /// the training cameras' agreement, and the values that bound it ([`crate::physics::profile`]).
+    /// How closely the frames pin each learned parameter of the global fit (before a field):
+    /// the moves tried on each side of it, their loss rise and the training cameras'
+    /// agreement, and the values that bound it ([`crate::physics::profile`]).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub profile: Vec<ParamProfile>,
 }
@@ -1093,10 +1093,11 @@ impl TypedStage for MaterialStage {
 }
 
 /// How closely the frames pin each parameter of the global fit `global`
-/// ([`crate::physics::profile`]); where a move of a modulus, yield stress or viscosity lowers
-/// the loss with the cameras agreeing, the fit goes on from there and is profiled again (at most `profile.rounds`
-/// times), then takes each parameter's parabola vertex that lowers the loss.
-/// `eval` scores a material on the fit's views and returns each (frame, view)'s loss.
+/// ([`crate::physics::profile`]); where a move of a modulus, yield stress or viscosity
+/// lowers the loss with the cameras agreeing, the fit goes on from there and is profiled
+/// again (at most `profile.rounds` times, the move's rollout reused as the new fit's), then
+/// takes each parameter's parabola vertex that lowers the loss. `eval` scores a material on
+/// the fit's views and returns each (frame, view)'s loss.
 fn profile_and_polish(
     p: &MaterialParams,
     ctx: &mut StageContext<'_>,
@@ -1112,11 +1113,14 @@ fn profile_and_polish(
         .map(|q| q.name())
         .collect::<Vec<_>>()
         .join(", ");
+    // The losses of the points this round scored: the next round's fit is one of them.
+    let mut seen: Vec<(Vec<f64>, ViewLosses)> = Vec::new();
     let (prof, fit) = loop {
         let at: Vec<f64> = learned
             .iter()
             .map(|q| global.get(*q).unwrap_or(0.0))
             .collect();
+        seen.retain(|(v, _)| *v == at);
         ctx.progress.log(&format!(
             "material profile: each of {names} moved alone about the fit, on the training views (cameras agree at t >= {})",
             p.profile.t_min
@@ -1127,11 +1131,16 @@ fn profile_and_polish(
             learned,
             &at,
             |values| {
+                if let Some((_, l)) = seen.iter().find(|(v, _)| v == values) {
+                    return Ok(l.clone());
+                }
                 let mut m = from.clone();
                 for (q, v) in learned.iter().zip(values) {
                     m.values.insert(*q, *v);
                 }
-                eval(&m)
+                let l = eval(&m)?;
+                seen.push((values.to_vec(), l.clone()));
+                Ok(l)
             },
             |line| ctx.progress.log(&format!("    {line}")),
         )?;
