@@ -8,6 +8,7 @@
 pub mod adam;
 pub mod appearance;
 pub mod descent;
+pub mod field_parts;
 pub mod fit;
 pub mod free_flight;
 pub mod material_field;

@@ -48,6 +48,11 @@ pub struct ProfileParams {
     /// each; 0 only reports.
     #[serde(default = "rounds")]
     pub rounds: u32,
+    /// A kept material field's values are grouped into this many parts (natural breaks of
+    /// its `log10 E`, [`super::field_parts`]) and each part's E is profiled alone; 0 or 1
+    /// profiles no part.
+    #[serde(default = "field_parts")]
+    pub field_parts: usize,
 }
 
 fn yes() -> bool {
@@ -68,6 +73,12 @@ fn t_min() -> f64 {
 fn rounds() -> u32 {
     3
 }
+fn field_parts() -> usize {
+    2
+}
+
+/// The most parts `profile.field_parts` may ask for.
+pub const MAX_FIELD_PARTS: usize = 8;
 
 impl Default for ProfileParams {
     fn default() -> Self {
@@ -78,6 +89,7 @@ impl Default for ProfileParams {
             friction_deg: friction_steps(),
             t_min: t_min(),
             rounds: rounds(),
+            field_parts: field_parts(),
         }
     }
 }
@@ -98,6 +110,17 @@ impl ProfileParams {
         check("decades", &self.decades)
             .or_else(|| check("nu", &self.nu))
             .or_else(|| check("friction_deg", &self.friction_deg))
+            .or_else(|| {
+                (self.field_parts > MAX_FIELD_PARTS).then(|| {
+                    (
+                        "field_parts",
+                        format!(
+                            "{}: at most {MAX_FIELD_PARTS} (0 or 1 profiles no part)",
+                            self.field_parts
+                        ),
+                    )
+                })
+            })
             .or_else(|| {
                 (!(self.t_min.is_finite() && self.t_min > 0.0)).then(|| {
                     (

@@ -282,6 +282,32 @@ pub struct FieldSummary {
     /// Weights of the triplane and the MLP (`field.material.arrow`), and their count.
     pub weights_table: String,
     pub weights: usize,
+    /// The field's values grouped into parts (`profile.field_parts`), each with the profile
+    /// of its E moved alone: how closely the frames hold each part.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub parts: Option<FieldParts>,
+}
+
+/// A kept field's parts (natural breaks of its `log10 E`, [`crate::physics::field_parts`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FieldParts {
+    /// The field's `log10 E` (E in Pa) between consecutive parts, ascending.
+    pub thresholds: Vec<f64>,
+    /// The parts, softest first.
+    pub parts: Vec<FieldPart>,
+}
+
+/// One part of a kept field.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FieldPart {
+    /// Its share of the body's volume, and its particles.
+    pub volume_share: f64,
+    pub particles: usize,
+    /// The volume-weighted median of its particles' E (Pa).
+    pub youngs_modulus_median: f64,
+    /// Every particle of the part has its E scaled alone by the profile's steps (decades);
+    /// `value` and the bounds are the part's median E so moved.
+    pub profile: ParamProfile,
 }
 
 /// The `material` stage.
@@ -936,6 +962,16 @@ impl TypedStage for MaterialStage {
                 }
             }
         };
+        // How closely the frames hold each part of a kept field.
+        let field_parts = match &fitted {
+            Some(f) if p.profile.enabled && p.profile.field_parts >= 2 => {
+                profile_field_parts(p, ctx, f, &object.body.material.volume, |m, moduli| {
+                    eval(m, Some(moduli), &mut loss)?;
+                    Ok(loss.view_loss.clone())
+                })?
+            }
+            _ => None,
+        };
         // Wall time of each phase (s; the global one from this run's first epoch on).
         for (metric, value) in [
             ("wall_s_global", global_s),
@@ -1001,6 +1037,7 @@ impl TypedStage for MaterialStage {
                     loss_global,
                     weights_table: "field.material.arrow".into(),
                     weights: f.field.field.param_count(),
+                    parts: field_parts,
                 })
             }
             _ => None,
@@ -1220,6 +1257,83 @@ fn free_frames(
             )
         })
         .flatten()
+}
+
+/// A kept field's values grouped into `profile.field_parts` parts, and each part's E moved
+/// alone by the profile's steps ([`crate::physics::profile`]): `eval` scores per-particle
+/// moduli on the fit's views and frames. `None` when the field does not split into that many
+/// parts (a uniform field).
+fn profile_field_parts(
+    p: &MaterialParams,
+    ctx: &mut StageContext<'_>,
+    f: &crate::stages::material_field::FieldFit,
+    volume: &[f64],
+    mut eval: impl FnMut(
+        &MaterialValues,
+        &crate::physics::rollout::Moduli,
+    ) -> Result<ViewLosses, StageError>,
+) -> Result<Option<FieldParts>, StageError> {
+    use crate::physics::field_parts::natural_breaks;
+    let k = p.profile.field_parts;
+    let log_e: Vec<f64> = f.moduli.e.iter().map(|e| e.log10()).collect();
+    let Some(split) = natural_breaks(&log_e, volume, k) else {
+        ctx.progress.log(&format!(
+            "material profile: the field's E does not split into {k} parts: no part profiled"
+        ));
+        return Ok(None);
+    };
+    let part = split.assign(&f.moduli.e);
+    let shares = split.shares(&part, volume);
+    let median: Vec<f64> = split.log10_e.iter().map(|l| 10f64.powf(*l)).collect();
+    ctx.progress.log(&format!(
+        "material profile: the field in {k} parts (its log10 E cut at {}), each part's E moved alone on the training views",
+        split
+            .thresholds
+            .iter()
+            .map(|t| format!("{t:.3}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    ));
+    let learned = vec![Param::E; k];
+    let (profiles, _) = crate::physics::profile::profile(
+        &p.profile,
+        &learned,
+        &median,
+        |values| {
+            let mut moduli = f.moduli.clone();
+            for (e, k) in moduli.e.iter_mut().zip(&part) {
+                *e *= values[*k] / median[*k];
+            }
+            eval(&f.values, &moduli)
+        },
+        // Logged below, named by part.
+        |_| {},
+    )?;
+    let parts = profiles
+        .into_iter()
+        .zip(&shares)
+        .zip(&median)
+        .enumerate()
+        .map(|(i, ((mut profile, (share, n)), e))| {
+            ctx.progress.log(&format!(
+                "    part {} ({:.0} % of the volume, {n} particles): {}",
+                i + 1,
+                100.0 * share,
+                profile.summary()
+            ));
+            profile.param = format!("E of part {} of {k}", i + 1);
+            FieldPart {
+                volume_share: *share,
+                particles: *n,
+                youngs_modulus_median: *e,
+                profile,
+            }
+        })
+        .collect();
+    Ok(Some(FieldParts {
+        thresholds: split.thresholds,
+        parts,
+    }))
 }
 
 /// The same object on another grid (`auto.regrid`): rebuilt from the canonical Gaussians with

@@ -286,6 +286,23 @@ fn shipped_pipeline_files_parse_with_the_builtin_stages() {
     assert!(seen >= 2, "pipelines/*.yaml");
 }
 
+/// The two-material bar's pipeline exists to show a material field: it must not resolve to the
+/// draft preset's default `model: global` (it did, silently, until the file set `auto`).
+#[test]
+fn the_two_material_pipeline_fits_a_field() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines/two-material-bar.yaml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let p = spec::parse(
+        &path,
+        &text,
+        &pipe::stages::builtin(),
+        &Overrides::default(),
+    )
+    .unwrap();
+    let material = p.stages.iter().find(|s| s.kind == "material").unwrap();
+    assert_eq!(material.params["model"], "auto", "{}", material.params);
+}
+
 #[test]
 fn a_sweep_block_gives_axes_in_file_order_and_over_replaces_its_key() {
     let p = parse(&format!(

@@ -328,6 +328,7 @@ fn parameters(
             });
         }
         with_bounds(run, &mut rows)?;
+        rows.extend(field_part_rows(run)?);
         return Ok(rows);
     }
     if let Some((_, dir)) = entry(run, "material") {
@@ -368,7 +369,47 @@ fn parameters(
         }
     }
     with_bounds(run, &mut rows)?;
+    rows.extend(field_part_rows(run)?);
     Ok(rows)
+}
+
+/// A row per part of a kept material field (`material.json` `field.parts`): the part's median
+/// E and how closely the frames bound it.
+fn field_part_rows(run: &RunSummary) -> Result<Vec<ParameterRow>, ReportError> {
+    let Some((_, dir)) = entry(run, "material") else {
+        return Ok(Vec::new());
+    };
+    let m = read_json(&dir.join("material.json"))?;
+    let Some(parts) = m.pointer("/field/parts/parts").and_then(Value::as_array) else {
+        return Ok(Vec::new());
+    };
+    let k = parts.len();
+    Ok(parts
+        .iter()
+        .enumerate()
+        .map(|(i, part)| {
+            let share = part
+                .get("volume_share")
+                .and_then(Value::as_f64)
+                .unwrap_or(f64::NAN);
+            ParameterRow {
+                name: format!(
+                    "E, field part {} of {k} ({:.0} % of the volume)",
+                    i + 1,
+                    100.0 * share
+                ),
+                unit: unit("E").into(),
+                learned: part
+                    .get("youngs_modulus_median")
+                    .cloned()
+                    .unwrap_or(Value::Null),
+                truth: Value::Null,
+                error: None,
+                error_kind: "the part's median (per-particle errors: the field's row above)".into(),
+                bounded: part.get("profile").map(bounds_text).unwrap_or_default(),
+            }
+        })
+        .collect())
 }
 
 /// Fills each row's `bounded` from the `material` entry's profile.
