@@ -86,7 +86,7 @@ fn every_family_runs_from_images_to_a_scored_result() {
             "--supersample",
             "2",
         ];
-        generate(&root.join("scene"), &[&common[..], args].concat());
+        generate("scene", &root.join("scene"), &[&common[..], args].concat());
         let run = Run::new(
             &root,
             &format!(

@@ -13,6 +13,7 @@ use generated::{Run, generate};
 fn spinning(shape: &str, extent: &str, v0: &str, spin: &str) -> Value {
     let dir = tempfile::tempdir().unwrap();
     generate(
+        "scene",
         &dir.path().join("scene"),
         &[
             "--family",

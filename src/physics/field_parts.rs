@@ -11,6 +11,8 @@
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
+use super::rollout::Moduli;
+
 /// Histogram bins the natural breaks are searched on (the breaks fall on bin edges).
 pub const BINS: usize = 256;
 
@@ -46,6 +48,26 @@ impl Parts {
     /// The part of each particle from the field's E (Pa) at it.
     pub fn assign(&self, field_e: &[f64]) -> Vec<usize> {
         field_e.iter().map(|e| self.part_of(e.log10())).collect()
+    }
+
+    /// `moduli` with each particle's E replaced by its part's (`part` from [`Parts::assign`]).
+    pub fn apply(&self, part: &[usize], moduli: &mut Moduli) {
+        for (e, k) in moduli.e.iter_mut().zip(part) {
+            *e = 10f64.powf(self.log10_e[*k]);
+        }
+    }
+
+    /// `∂L/∂(log10 E_k)` of each part from the per-particle `∂L/∂E_p` (`grad_e`) at the parts'
+    /// moduli: `Σ_{p ∈ k} ∂L/∂E_p · E_k · ln 10`.
+    pub fn gradient(&self, part: &[usize], grad_e: &[f64]) -> Vec<f64> {
+        let mut g = vec![0.0; self.len()];
+        for (k, d) in part.iter().zip(grad_e) {
+            g[*k] += d;
+        }
+        for (g, l) in g.iter_mut().zip(&self.log10_e) {
+            *g *= 10f64.powf(*l) * std::f64::consts::LN_10;
+        }
+        g
     }
 
     /// Each part's share of `weight` (e.g. the particles' volumes) and its particle count.

@@ -17,6 +17,7 @@ use pipe_field::{Field, FieldConfig, FieldError, FieldWeights};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
+use super::field_parts::Parts;
 use super::params::{MaterialValues, Param};
 use super::rollout::{Moduli, Truncate};
 use crate::scene::table::{self, Table, TableError, column};
@@ -71,7 +72,24 @@ pub struct FieldSettings {
     /// the soft half's E rose 3×) where an E field with a global ν fitted the frames better.
     #[serde(default = "vary")]
     pub vary: Vec<Param>,
+    /// `model: auto` groups a field that wins into 2 to this many parts (natural breaks of its
+    /// `log10 E`, [`crate::physics::field_parts`]), each part one material whose E is fitted
+    /// on the field's views and frames; of these models and the field, the simplest that wins
+    /// on the held-out data and on the second grid (`auto.regrid`), within `auto.margin` of
+    /// the best that does, is kept. 0 or 1 tries no parts.
+    #[serde(default = "parts")]
+    pub parts: usize,
+    /// Descent iterations of each parts model (default: the stage's `epochs`).
+    #[serde(default)]
+    pub parts_epochs: Option<u32>,
 }
+
+fn parts() -> usize {
+    3
+}
+
+/// The most parts `field.parts` may ask for.
+pub const MAX_PARTS: usize = 8;
 
 fn vary() -> Vec<Param> {
     vec![Param::E]
@@ -117,6 +135,8 @@ impl Default for FieldSettings {
             seed: 0,
             truncate: field_truncate(),
             vary: vary(),
+            parts: parts(),
+            parts_epochs: None,
         }
     }
 }
@@ -147,6 +167,9 @@ pub struct MaterialField {
     pub points: Vec<[f64; 3]>,
     /// `log10 E` of the global fit the field started from: the centre of E's bounded map.
     pub log10_e_centre: f64,
+    /// The field's values grouped into a few materials ([`Parts`]), when `model: auto` kept
+    /// them: each point then takes its part's E.
+    pub parts: Option<Parts>,
 }
 
 /// How far (decades) a particle's E may go from the global fit's: `log10 E = c + R·tanh((y −
@@ -200,6 +223,7 @@ impl MaterialField {
             outputs,
             points,
             log10_e_centre,
+            parts: None,
         })
     }
 
@@ -213,10 +237,28 @@ impl MaterialField {
 
     /// Per-particle `E` and `ν` at other rest positions `points` (m), e.g. the particles of
     /// the same object on another grid: the field is a function of space, not of particles.
+    /// With [`Parts`], each point takes its part's E.
     ///
     /// # Errors
     /// A non-finite output, named.
     pub fn moduli_at(
+        &self,
+        points: &[[f64; 3]],
+        values: &MaterialValues,
+    ) -> Result<Moduli, FieldError> {
+        let mut m = self.field_moduli_at(points, values)?;
+        if let Some(parts) = &self.parts {
+            let part = parts.assign(&m.e);
+            parts.apply(&part, &mut m);
+        }
+        Ok(m)
+    }
+
+    /// Per-particle `E` and `ν` at `points` from the field alone (without its parts).
+    ///
+    /// # Errors
+    /// A non-finite output, named.
+    pub fn field_moduli_at(
         &self,
         points: &[[f64; 3]],
         values: &MaterialValues,
@@ -311,6 +353,8 @@ pub struct FieldTable {
     pub outputs: Vec<String>,
     /// A material field's centre of E's bounded map ([`E_RANGE_DECADES`]).
     pub log10_e_centre: Option<f64>,
+    /// A material field's parts ([`Parts`]), when kept.
+    pub parts: Option<Parts>,
 }
 
 impl Table for FieldTable {
@@ -349,6 +393,7 @@ impl Table for FieldTable {
             "domain_max": self.weights.domain_max,
             "outputs": self.outputs,
             "log10_e_centre": self.log10_e_centre,
+            "parts": self.parts,
         });
         let schema = Self::schema();
         let mut md = schema.metadata().clone();
@@ -425,6 +470,13 @@ impl Table for FieldTable {
             },
             outputs,
             log10_e_centre: meta["log10_e_centre"].as_f64(),
+            parts: match meta.get("parts") {
+                None | Some(serde_json::Value::Null) => None,
+                Some(v) => Some(
+                    serde_json::from_value::<Parts>(v.clone())
+                        .map_err(|e| bad(format!("`field` metadata `parts`: {e}")))?,
+                ),
+            },
         })
     }
 }
@@ -437,6 +489,7 @@ pub fn write_weights(path: &Path, field: &MaterialField) -> Result<(), TableErro
             weights: field.field.weights(),
             outputs: field.outputs.iter().map(|q| q.name().to_string()).collect(),
             log10_e_centre: Some(field.log10_e_centre).filter(|c| c.is_finite()),
+            parts: field.parts.clone(),
         },
     )
 }
@@ -485,12 +538,99 @@ pub fn read_moduli(
         }
         (false, _) => f64::NAN,
     };
+    if let Some(parts) = &table.parts
+        && (parts.thresholds.len() + 1 != parts.len()
+            || parts.is_empty()
+            || !outputs.contains(&Param::E)
+            || parts
+                .log10_e
+                .iter()
+                .chain(&parts.thresholds)
+                .any(|v| !v.is_finite()))
+    {
+        return Err(format!(
+            "{}: `parts` needs one threshold fewer than parts, finite values and a field of E (found {} thresholds, {} parts)",
+            path.display(),
+            parts.thresholds.len(),
+            parts.len()
+        ));
+    }
     MaterialField {
         field,
         outputs,
         points,
         log10_e_centre,
+        parts: table.parts.clone(),
     }
     .moduli(values)
     .map_err(|e| format!("{}: {e}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::spec::MaterialFamily;
+
+    fn field_over_a_bar() -> (MaterialField, MaterialValues) {
+        let points: Vec<[f64; 3]> = (0..40)
+            .map(|i| {
+                [
+                    f64::from(i) * 0.01,
+                    0.05 * f64::from(i % 3),
+                    0.02 * f64::from(i % 2),
+                ]
+            })
+            .collect();
+        let mut values =
+            MaterialValues::guess(MaterialFamily::Elastic, 1000.0, &Default::default());
+        values.values.insert(Param::E, 1e5);
+        let mut f =
+            MaterialField::starting_at(&FieldSettings::default(), points, vec![Param::E], &values)
+                .unwrap();
+        // Perturb the weights so the field varies over the points.
+        let w: Vec<f64> = f
+            .field
+            .to_flat()
+            .iter()
+            .enumerate()
+            .map(|(i, v)| v + 0.05 * ((i as f64) * 0.37).sin())
+            .collect();
+        f.field.set_flat(&w).unwrap();
+        (f, values)
+    }
+
+    #[test]
+    fn a_field_with_parts_round_trips_and_gives_each_point_its_parts_e() {
+        let (mut f, values) = field_over_a_bar();
+        let raw = f.moduli(&values).unwrap();
+        let log_e: Vec<f64> = raw.e.iter().map(|e| e.log10()).collect();
+        let lo = log_e.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = log_e.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        assert!(hi - lo > 1e-3, "the field varies: {lo} .. {hi}");
+        let cut = 0.5 * (lo + hi);
+        f.parts = Some(Parts {
+            thresholds: vec![cut],
+            log10_e: vec![4.0, 6.0],
+        });
+        let with = f.moduli(&values).unwrap();
+        for (l, e) in log_e.iter().zip(&with.e) {
+            assert_eq!(*e, if *l >= cut { 1e6 } else { 1e4 });
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("field.material.arrow");
+        write_weights(&path, &f).unwrap();
+        let read = read_moduli(&path, f.points.clone(), &values).unwrap();
+        assert_eq!(read.e, with.e);
+        // A table whose parts do not fit together is refused by name.
+        f.parts = Some(Parts {
+            thresholds: vec![cut, cut + 0.1],
+            log10_e: vec![4.0, 6.0],
+        });
+        write_weights(&path, &f).unwrap();
+        let err = read_moduli(&path, f.points.clone(), &values).unwrap_err();
+        assert!(
+            err.contains("`parts` needs one threshold fewer than parts"),
+            "{err}"
+        );
+    }
 }

@@ -160,6 +160,7 @@ pub fn write_weights(path: &Path, field: &VelocityField) -> Result<(), TableErro
             weights: field.field.weights(),
             outputs: OUTPUTS.iter().map(|s| s.to_string()).collect(),
             log10_e_centre: None,
+            parts: None,
         },
     )
 }

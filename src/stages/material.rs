@@ -38,7 +38,8 @@ use crate::physics::views::{LossWeights, ViewsLoss};
 use crate::pipeline::spec::{Preset, SceneSpec};
 use crate::pipeline::stage::{MetricRow, ParamError, StageContext, StageError, TypedStage};
 use crate::stages::material_select::{
-    AutoSettings, ModelSelection, decide, decide_again, median_replaces_global, split_views,
+    AutoSettings, Candidate, ModelSelection, PartsScore, choose, field_wins,
+    median_replaces_global, split_views,
 };
 use crate::stages::velocity::{VelocityResult, check_family_guess, check_guess};
 
@@ -317,7 +318,7 @@ pub struct MaterialStage;
 impl TypedStage for MaterialStage {
     type Params = MaterialParams;
     const KIND: &'static str = "material";
-    const VERSION: u32 = 19;
+    const VERSION: u32 = 20;
     const DESCRIPTION: &'static str = "Learn the material's parameters from every frame (gradient descent through the renderer and the MPM simulation)";
     const UPSTREAM: &'static [&'static str] = &["ingest", "warmup", "velocity"];
 
@@ -405,6 +406,19 @@ impl TypedStage for MaterialStage {
             }
             if p.field.epochs == Some(0) {
                 return bad("field.epochs", "must be at least 1".into());
+            }
+            if p.field.parts > crate::physics::material_field::MAX_PARTS {
+                return bad(
+                    "field.parts",
+                    format!(
+                        "must be at most {} (0 or 1: no parts), found {}",
+                        crate::physics::material_field::MAX_PARTS,
+                        p.field.parts
+                    ),
+                );
+            }
+            if p.field.parts_epochs == Some(0) {
+                return bad("field.parts_epochs", "must be at least 1".into());
             }
         }
         if let Some(l) = &p.learn
@@ -904,15 +918,58 @@ impl TypedStage for MaterialStage {
                         } else {
                             (lg, "global model", &global)
                         };
-                        let mut wins;
-                        (wins, selection.reason) = decide(simple, lf, p.auto.margin, simpler);
-                        if wins && p.auto.regrid != 1.0 {
+                        // A field that wins is grouped into parts, each one material
+                        // (`field.parts`): the simplest non-uniform models, tried first.
+                        let mut fits = Vec::new();
+                        if p.field.parts >= 2 && field_wins(simple, lf, p.auto.margin) {
+                            let epochs = p.field.parts_epochs.unwrap_or(p.epochs);
+                            for k in 2..=p.field.parts {
+                                let Some(pf) = crate::stages::material_parts::fit(
+                                    p,
+                                    ctx,
+                                    Rollout {
+                                        frames: fit_last,
+                                        ..base
+                                    },
+                                    &mut fit_loss,
+                                    &learned,
+                                    &f,
+                                    k,
+                                    epochs,
+                                )?
+                                else {
+                                    continue;
+                                };
+                                let l = eval(&pf.values, Some(&pf.moduli), &mut held_loss)?.loss();
+                                fits.push((format!("the {k}-part model"), pf, l));
+                            }
+                        }
+                        fits.push(("the field".to_string(), f, lf));
+                        // Those that win are scored again on the object rebuilt on another
+                        // grid (`auto.regrid`): a gain that mostly vanishes with a new
+                        // discretisation is not the object's.
+                        let winning: Vec<usize> = (0..fits.len())
+                            .filter(|&i| field_wins(simple, fits[i].2, p.auto.margin))
+                            .collect();
+                        let mut regrid: Vec<Option<f64>> = vec![None; fits.len()];
+                        let mut simple2 = None;
+                        if !winning.is_empty() && p.auto.regrid != 1.0 {
                             let dx = p.auto.regrid * object.body.setup.dx;
                             ctx.progress.log(&format!(
-                                "material auto: {}; scoring both again on a grid of {dx:.4} m cells",
-                                selection.reason
+                                "material auto: held out, the {simpler} {simple:.5}, {}; scoring {} again on a grid of {dx:.4} m cells",
+                                fits.iter()
+                                    .map(|(n, _, l)| format!("{n} {l:.5}"))
+                                    .collect::<Vec<_>>()
+                                    .join(", "),
+                                winning
+                                    .iter()
+                                    .map(|&i| fits[i].0.as_str())
+                                    .collect::<Vec<_>>()
+                                    .join(", ")
                             ));
-                            let (ls2, lf2) = OtherGrid {
+                            let scored: Vec<&crate::stages::material_field::FieldFit> =
+                                winning.iter().map(|&i| &fits[i].1).collect();
+                            let (ls2, l2) = OtherGrid {
                                 inputs: &inputs,
                                 velocity: &velocity,
                                 guess: &guess,
@@ -924,24 +981,50 @@ impl TypedStage for MaterialStage {
                                 dx,
                                 targets.iter().filter(|t| !fitted_on(t)),
                                 simple_values,
-                                &f,
+                                &scored,
                             )?;
+                            for (&i, l) in winning.iter().zip(l2) {
+                                regrid[i] = Some(l);
+                            }
+                            simple2 = Some(ls2);
                             selection.regrid_dx_m = Some(dx);
                             selection.loss_simple_regrid_held_out = Some(ls2);
-                            selection.loss_field_regrid_held_out = Some(lf2);
-                            let (wins2, reason2) = decide_again(
-                                (simple, lf),
-                                (ls2, lf2),
-                                p.auto.margin,
-                                p.auto.regrid_keep,
-                                simpler,
-                            );
-                            wins = wins2;
-                            selection.reason = format!(
-                                "{}; on a grid of {dx:.4} m cells: {reason2}",
-                                selection.reason
-                            );
+                            selection.loss_field_regrid_held_out = regrid[fits.len() - 1];
                         }
+                        selection.parts = fits[..fits.len() - 1]
+                            .iter()
+                            .zip(&regrid)
+                            .map(|((_, pf, l), l2)| {
+                                let parts = pf.field.parts.clone().unwrap_or_default();
+                                PartsScore {
+                                    parts: parts.len(),
+                                    thresholds: parts.thresholds,
+                                    log10_e: parts.log10_e,
+                                    loss_held_out: *l,
+                                    loss_regrid_held_out: *l2,
+                                }
+                            })
+                            .collect();
+                        let candidates: Vec<Candidate> = fits
+                            .iter()
+                            .zip(&regrid)
+                            .map(|((name, _, l), l2)| Candidate {
+                                name: name.clone(),
+                                held_out: *l,
+                                regrid: *l2,
+                            })
+                            .collect();
+                        let (chosen, reason) = choose(
+                            simple,
+                            simple2,
+                            &candidates,
+                            p.auto.margin,
+                            p.auto.regrid_keep,
+                            simpler,
+                        );
+                        selection.reason = reason;
+                        let wins = chosen.is_some();
+                        let kept = chosen.map(|i| fits.swap_remove(i));
                         if !wins && median_replaces_global(lg, lm, p.auto.margin) {
                             global = at_median;
                             selection.reason = format!(
@@ -952,11 +1035,17 @@ impl TypedStage for MaterialStage {
                         }
                         ctx.progress
                             .log(&format!("material auto: {}", selection.reason));
-                        if wins {
-                            selection.kept = "field".into();
-                            (Some(f), Some(selection))
-                        } else {
-                            (None, Some(selection))
+                        match kept {
+                            Some((_, f, _)) => {
+                                selection.kept = if f.field.parts.is_some() {
+                                    "parts"
+                                } else {
+                                    "field"
+                                }
+                                .into();
+                                (Some(f), Some(selection))
+                            }
+                            None => (None, Some(selection)),
                         }
                     }
                 }
@@ -1347,8 +1436,8 @@ struct OtherGrid<'a> {
 }
 
 impl OtherGrid<'_> {
-    /// The held-out losses (`targets`) of `simple` and of the field `f` (read at the new
-    /// particles' rest positions) on the grid of cell `dx` (m).
+    /// The held-out losses (`targets`) of `simple` and of each field of `fits` (read at the new
+    /// particles' rest positions, with its parts when it has them) on the grid of cell `dx` (m).
     fn held_out_losses<'t>(
         &self,
         p: &MaterialParams,
@@ -1356,8 +1445,8 @@ impl OtherGrid<'_> {
         dx: f64,
         targets: impl IntoIterator<Item = &'t crate::scene::targets::Target>,
         simple: &MaterialValues,
-        f: &crate::stages::material_field::FieldFit,
-    ) -> Result<(f64, f64), StageError> {
+        fits: &[&crate::stages::material_field::FieldFit],
+    ) -> Result<(f64, Vec<f64>), StageError> {
         let object = self.inputs.object(ctx, self.guess, Resolution::Dx(dx))?;
         let v0 = self
             .velocity
@@ -1365,10 +1454,6 @@ impl OtherGrid<'_> {
         let last = self.template.frames;
         let free = free_frames(p, self.velocity, &object, last, is_fluid(self.guess.family));
         let points: Vec<[f64; 3]> = object.body.state.x.iter().map(|x| x.to_array()).collect();
-        let moduli = f
-            .field
-            .moduli_at(&points, &f.values)
-            .map_err(|e| StageError::failed(FitError::Invalid(format!("field: {e}"))))?;
         let mut held = ViewsLoss::new(
             &object,
             is_fluid(self.guess.family),
@@ -1403,11 +1488,18 @@ impl OtherGrid<'_> {
                 })
         };
         let ls = run(base)?;
-        let lf = run(Rollout {
-            material: &f.values,
-            moduli: Some(&moduli),
-            ..base
-        })?;
+        let mut lf = Vec::with_capacity(fits.len());
+        for f in fits {
+            let moduli = f
+                .field
+                .moduli_at(&points, &f.values)
+                .map_err(|e| StageError::failed(FitError::Invalid(format!("field: {e}"))))?;
+            lf.push(run(Rollout {
+                material: &f.values,
+                moduli: Some(&moduli),
+                ..base
+            })?);
+        }
         Ok((ls, lf))
     }
 }

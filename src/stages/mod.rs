@@ -7,6 +7,7 @@ pub mod ingest;
 pub mod init;
 pub mod material;
 mod material_field;
+mod material_parts;
 pub mod material_select;
 pub mod velocity;
 pub mod warmup;

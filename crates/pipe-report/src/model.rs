@@ -405,7 +405,7 @@ fn field_part_rows(run: &RunSummary) -> Result<Vec<ParameterRow>, ReportError> {
                     .unwrap_or(Value::Null),
                 truth: Value::Null,
                 error: None,
-                error_kind: "the part's median (per-particle errors: the field's row above)".into(),
+                error_kind: "median of the part's particles".into(),
                 bounded: part.get("profile").map(bounds_text).unwrap_or_default(),
             }
         })
@@ -421,12 +421,23 @@ fn with_bounds(run: &RunSummary, rows: &mut [ParameterRow]) -> Result<(), Report
     let Some(profile) = m.get("profile").and_then(Value::as_array) else {
         return Ok(());
     };
+    // With a field kept, E's row holds the particles' median while the profile was taken
+    // about the one-material fit the field started from: the bounds say so.
+    let field = m.get("model").and_then(Value::as_str) == Some("field");
     for p in profile {
         let Some(name) = p.get("param").and_then(Value::as_str) else {
             continue;
         };
         if let Some(row) = rows.iter_mut().find(|r| r.name == name) {
-            row.bounded = bounds_text(p);
+            row.bounded = if field && name == "E" {
+                let at = p
+                    .get("value")
+                    .and_then(Value::as_f64)
+                    .map_or_else(|| "—".to_string(), crate::text::num);
+                format!("the one-material fit ({at}): {}", bounds_text(p))
+            } else {
+                bounds_text(p)
+            };
         }
     }
     Ok(())
@@ -808,6 +819,68 @@ pub fn build(runs: &[RunSummary], out: &Path) -> Result<(Report, Vec<Vec<Drawn>>
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_kept_fields_parts_get_rows_and_es_bounds_name_the_one_material_fit() {
+        let dir = std::env::temp_dir().join(format!("pipe-report-parts-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let profile = |value: f64, lo: f64, hi: f64| {
+            serde_json::json!({
+                "param": "E", "unit": "decades", "value": value,
+                "below": [{"step": -0.25, "value": lo, "rise_pct": 90.0, "t": 8.0}],
+                "above": [{"step": 0.25, "value": hi, "rise_pct": 160.0, "t": 12.0}],
+                "ends": ["bounded", "bounded"], "bounds": [lo, hi]
+            })
+        };
+        let material = serde_json::json!({
+            "model": "field",
+            "youngs_modulus": 4.73e4,
+            "profile": [profile(2.33e4, 1.31e4, 4.14e4)],
+            "field": {"parts": {"thresholds": [4.93], "parts": [
+                {"volume_share": 0.527, "particles": 2340, "youngs_modulus_median": 2.39e4,
+                 "profile": profile(2.39e4, 1.34e4, 4.25e4)},
+                {"volume_share": 0.473, "particles": 2099, "youngs_modulus_median": 3.99e5,
+                 "profile": profile(3.99e5, 2.24e5, 7.10e5)}
+            ]}}
+        });
+        std::fs::write(dir.join("material.json"), material.to_string()).unwrap();
+        let run = RunSummary {
+            name: "bar".into(),
+            file: "bar.yaml".into(),
+            preset: "draft".into(),
+            scene: Value::Null,
+            stages: vec![crate::input::StageRun {
+                name: "material".into(),
+                kind: "material".into(),
+                key: "k".into(),
+                state: "cached".into(),
+                reasons: Vec::new(),
+                dir: Some(dir.clone()),
+                params: Value::Null,
+                wall_s: None,
+                peak_rss_bytes: None,
+                threads: None,
+                warnings: Vec::new(),
+            }],
+            strips: Vec::new(),
+            gifs: Vec::new(),
+        };
+        let rows = parameters(&run, None).unwrap();
+        std::fs::remove_dir_all(&dir).ok();
+        let e = rows.iter().find(|r| r.name == "E").unwrap();
+        assert_eq!(
+            e.bounded,
+            "the one-material fit (23300.0): from 13100.0; to 41400.0"
+        );
+        let parts: Vec<&ParameterRow> = rows
+            .iter()
+            .filter(|r| r.name.contains("field part"))
+            .collect();
+        assert_eq!(parts.len(), 2);
+        assert_eq!(parts[1].name, "E, field part 2 of 2 (47 % of the volume)");
+        assert_eq!(parts[1].learned, serde_json::json!(3.99e5));
+        assert_eq!(parts[1].bounded, "from 2.240e5; to 7.100e5");
+    }
 
     #[test]
     fn a_profile_reads_as_the_values_that_bound_the_parameter() {

@@ -1,4 +1,4 @@
-//! Generated scenes through the pipeline: `datasets-tools scene` into a folder, then a pipeline
+//! Generated scenes through the pipeline: `datasets-tools scene` (or `two-material`) into a folder, then a pipeline
 //! file's stages on it, quietly, with its outputs read back as JSON.
 
 use std::path::Path;
@@ -10,10 +10,10 @@ use pipe::pipeline::spec::{self, Overrides, Pipeline};
 use pipe::pipeline::stage::Registry;
 use serde_json::Value;
 
-/// `datasets-tools scene DST ARGS...`, which must succeed.
-pub fn generate(dst: &Path, args: &[&str]) {
+/// `datasets-tools COMMAND DST ARGS...` (`scene`, `two-material`), which must succeed.
+pub fn generate(command: &str, dst: &Path, args: &[&str]) {
     let o = Command::new(env!("CARGO_BIN_EXE_datasets-tools"))
-        .arg("scene")
+        .arg(command)
         .arg(dst)
         .args(args)
         .output()
