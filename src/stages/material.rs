@@ -1506,6 +1506,25 @@ impl OtherGrid<'_> {
 
 /// When `p.budget` is spent by the `work` done: the note the stage logs, naming the phase
 /// that stops and the epochs it had done.
+/// Whether an epoch loop of `phase` stops before `epoch`: `Err` when the user
+/// interrupted, `true` (and the reason logged) once the work budget is spent.
+pub(crate) fn epoch_loop_stops(
+    ctx: &StageContext<'_>,
+    p: &MaterialParams,
+    work: Option<&Work>,
+    phase: &str,
+    epoch: u32,
+) -> Result<bool, StageError> {
+    ctx.check_interrupted()?;
+    match work.and_then(|w| budget_spent(p, w, phase, epoch)) {
+        Some(note) => {
+            ctx.progress.log(&note);
+            Ok(true)
+        }
+        None => Ok(false),
+    }
+}
+
 pub(crate) fn budget_spent(
     p: &MaterialParams,
     work: &Work,

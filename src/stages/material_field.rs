@@ -139,12 +139,7 @@ pub(crate) fn fit(
     ctx.progress.start("field epoch", u64::from(epochs));
     let mut losses = Vec::new();
     for epoch in 0..epochs {
-        ctx.check_interrupted()?;
-        if let Some(note) = base
-            .work
-            .and_then(|w| crate::stages::material::budget_spent(p, w, "the field", epoch))
-        {
-            ctx.progress.log(&note);
+        if crate::stages::material::epoch_loop_stops(ctx, p, base.work, "the field", epoch)? {
             break;
         }
         let (mut cur_values, mut cur_moduli) = (values.clone(), moduli.clone());

@@ -105,12 +105,7 @@ pub(crate) fn fit(
     let mut search = LineSearch::new(FIRST_STEP, p.lr_final, 1.0);
     let mut l = f64::NAN;
     for epoch in 0..epochs {
-        ctx.check_interrupted()?;
-        if let Some(note) = base
-            .work
-            .and_then(|w| crate::stages::material::budget_spent(p, w, "the parts", epoch))
-        {
-            ctx.progress.log(&note);
+        if crate::stages::material::epoch_loop_stops(ctx, p, base.work, "the parts", epoch)? {
             break;
         }
         let (parts, values, moduli) = at(&u);
