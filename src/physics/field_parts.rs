@@ -27,6 +27,15 @@ pub struct Parts {
 }
 
 impl Parts {
+    /// The cuts in log10 E, for a log line ("1.234, 5.678").
+    pub fn cuts_text(&self) -> String {
+        self.thresholds
+            .iter()
+            .map(|t| format!("{t:.3}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
     /// The number of parts.
     pub fn len(&self) -> usize {
         self.log10_e.len()

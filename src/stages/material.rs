@@ -1376,12 +1376,7 @@ fn profile_field_parts(
     let median: Vec<f64> = split.log10_e.iter().map(|l| 10f64.powf(*l)).collect();
     ctx.progress.log(&format!(
         "material profile: the field in {k} parts (its log10 E cut at {}), each part's E moved alone on the training views",
-        split
-            .thresholds
-            .iter()
-            .map(|t| format!("{t:.3}"))
-            .collect::<Vec<_>>()
-            .join(", ")
+        split.cuts_text()
     ));
     let learned = vec![Param::E; k];
     let (profiles, _) = crate::physics::profile::profile(
@@ -1504,8 +1499,6 @@ impl OtherGrid<'_> {
     }
 }
 
-/// When `p.budget` is spent by the `work` done: the note the stage logs, naming the phase
-/// that stops and the epochs it had done.
 /// Whether an epoch loop of `phase` stops before `epoch`: `Err` when the user
 /// interrupted, `true` (and the reason logged) once the work budget is spent.
 pub(crate) fn epoch_loop_stops(
@@ -1525,6 +1518,8 @@ pub(crate) fn epoch_loop_stops(
     }
 }
 
+/// When `p.budget` is spent by the `work` done: the note the stage logs, naming the phase
+/// that stops and the epochs it had done.
 pub(crate) fn budget_spent(
     p: &MaterialParams,
     work: &Work,

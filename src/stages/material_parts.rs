@@ -37,16 +37,16 @@ pub(crate) fn fit(
     if from.field.outputs != [Param::E] {
         return Ok(None);
     }
-    let training = |message: String| {
+    let training = |epoch: u32, message: String| {
         StageError::failed(FitError::Training {
-            epoch: 0,
+            epoch,
             message: format!("material parts ({k}): {message}"),
         })
     };
     let field_e = from
         .field
         .field_moduli_at(&from.field.points, &from.values)
-        .map_err(|e| training(e.to_string()))?
+        .map_err(|e| training(0, e.to_string()))?
         .e;
     let log_e: Vec<f64> = field_e.iter().map(|e| e.log10()).collect();
     let volume = &base.object.body.material.volume;
@@ -80,12 +80,7 @@ pub(crate) fn fit(
     let shares = start.shares(&part, volume);
     ctx.progress.log(&format!(
         "material parts: the field's log10 E cut at {} into {k} parts ({}), each fitted as one material",
-        start
-            .thresholds
-            .iter()
-            .map(|t| format!("{t:.3}"))
-            .collect::<Vec<_>>()
-            .join(", "),
+        start.cuts_text(),
         start
             .log10_e
             .iter()
@@ -98,9 +93,11 @@ pub(crate) fn fit(
             .collect::<Vec<_>>()
             .join("; ")
     ));
-    let fail = |e: RolloutError| match e {
-        RolloutError::Interrupted => StageError::Interrupted,
-        e => training(e.to_string()),
+    let fail = |epoch: u32| {
+        move |e: RolloutError| match e {
+            RolloutError::Interrupted => StageError::Interrupted,
+            e => training(epoch, e.to_string()),
+        }
     };
     let mut search = LineSearch::new(FIRST_STEP, p.lr_final, 1.0);
     let mut l = f64::NAN;
@@ -115,12 +112,12 @@ pub(crate) fn fit(
             ..base
         }
         .run(loss, Wants::Material(Truncate::None))
-        .map_err(fail)?;
+        .map_err(fail(epoch))?;
         l = out.loss();
         let per = out
             .moduli
             .as_ref()
-            .ok_or_else(|| training("no per-particle gradient".into()))?;
+            .ok_or_else(|| training(epoch, "no per-particle gradient".into()))?;
         let mut g = parts.gradient(&part, &per.e);
         let global = out.material.clone().unwrap_or_default();
         g.extend(
@@ -130,7 +127,7 @@ pub(crate) fn fit(
                 .map(|(q, u)| global.get(q).copied().unwrap_or(0.0) * q.dvalue_du(*u)),
         );
         if let Some(v) = g.iter().find(|v| !v.is_finite()) {
-            return Err(training(format!("non-finite gradient ({v})")));
+            return Err(training(epoch, format!("non-finite gradient ({v})")));
         }
         let it = search
             .iterate(&u, l, &g, |trial, up_to| {
@@ -143,7 +140,7 @@ pub(crate) fn fit(
                 .run(loss, Wants::LossUpTo(up_to))
                 .map(|o| o.loss())
             })
-            .map_err(fail)?;
+            .map_err(fail(epoch))?;
         u = it.u;
         l = it.loss;
         ctx.metric(MetricRow {
@@ -173,7 +170,7 @@ pub(crate) fn fit(
     }
     let (parts, values, moduli) = at(&u);
     if !l.is_finite() {
-        return Err(training(format!("non-finite loss ({l})")));
+        return Err(training(epochs, format!("non-finite loss ({l})")));
     }
     let mut field = from.field.clone();
     field.parts = Some(parts);

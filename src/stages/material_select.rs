@@ -206,19 +206,18 @@ pub fn choose(
     let mut clauses = Vec::new();
     let mut passing = Vec::new();
     for (i, c) in candidates.iter().enumerate() {
-        let (wins, reason) = decide(simple, c.held_out, margin, simpler);
-        let reason = reason.replace("the field", &c.name);
+        let (wins, reason) = decide(simple, c.held_out, margin, simpler, &c.name);
         let (passes, reason) = match (wins, simple2, c.regrid) {
             (true, Some(s2), Some(c2)) => {
-                let (again, why) =
-                    decide_again((simple, c.held_out), (s2, c2), margin, keep, simpler);
-                (
-                    again,
-                    format!(
-                        "{reason}; on the second grid: {}",
-                        why.replace("the field", &c.name)
-                    ),
-                )
+                let (again, why) = decide_again(
+                    (simple, c.held_out),
+                    (s2, c2),
+                    margin,
+                    keep,
+                    simpler,
+                    &c.name,
+                );
+                (again, format!("{reason}; on the second grid: {why}"))
             }
             // Asked for and not scored there: it cannot pass.
             (true, Some(_), None) => (false, format!("{reason}; not scored on the second grid")),
@@ -315,12 +314,13 @@ pub fn split_views(
     Ok((held, fit))
 }
 
-/// Whether the field wins (its held-out loss `field` below `(1 − margin)` × the simpler
-/// model's `simple`), and the reason in words (`simpler` names that model).
-pub fn decide(simple: f64, field: f64, margin: f64, simpler: &str) -> (bool, String) {
+/// Whether the richer model `name` (`the field`, `the 2-part model`) wins (its held-out loss
+/// `field` below `(1 − margin)` × the simpler model's `simple`), and the reason in words
+/// (`simpler` names that model).
+pub fn decide(simple: f64, field: f64, margin: f64, simpler: &str, name: &str) -> (bool, String) {
     let wins = field_wins(simple, field, margin);
     let reason = format!(
-        "held-out loss {field:.5} with the field against {simple:.5} with the {simpler} ({:+.2} %); the field {} by more than {:.1} %",
+        "held-out loss {field:.5} with {name} against {simple:.5} with the {simpler} ({:+.2} %); {name} {} by more than {:.1} %",
         100.0 * (field / simple - 1.0),
         if wins { "wins" } else { "does not win" },
         100.0 * margin
@@ -328,7 +328,7 @@ pub fn decide(simple: f64, field: f64, margin: f64, simpler: &str) -> (bool, Str
     (wins, reason)
 }
 
-/// Whether the field still wins on the second grid (`auto.regrid`): by more than `margin`
+/// Whether the richer model `name` still wins on the second grid (`auto.regrid`): by more than `margin`
 /// over the simpler model's held-out loss there (`simple2`, `field2`), and with at least
 /// `keep` of its relative gain on the first grid (`simple`, `field`); the reason in words.
 pub fn decide_again(
@@ -337,8 +337,9 @@ pub fn decide_again(
     margin: f64,
     keep: f64,
     simpler: &str,
+    name: &str,
 ) -> (bool, String) {
-    let (wins, reason) = decide(simple2, field2, margin, simpler);
+    let (wins, reason) = decide(simple2, field2, margin, simpler, name);
     let gain = 1.0 - field / simple;
     let gain2 = 1.0 - field2 / simple2;
     if !wins || keep == 0.0 {
@@ -394,15 +395,42 @@ mod tests {
     #[test]
     fn a_field_must_keep_most_of_its_gain_on_the_second_grid() {
         // The two-material bar: -51.7 % and -41.3 %; the homogeneous torus: -26 % and -6 %.
-        let (bar, why) = decide_again((1.0, 0.483), (1.0, 0.587), 0.02, 0.5, "global model");
+        let (bar, why) = decide_again(
+            (1.0, 0.483),
+            (1.0, 0.587),
+            0.02,
+            0.5,
+            "global model",
+            "the field",
+        );
         assert!(bar && why.contains("keeps at least 50 %"), "{why}");
-        let (torus, why) = decide_again((0.508, 0.377), (0.490, 0.457), 0.02, 0.5, "global model");
+        let (torus, why) = decide_again(
+            (0.508, 0.377),
+            (0.490, 0.457),
+            0.02,
+            0.5,
+            "global model",
+            "the field",
+        );
         assert!(!torus && why.contains("keeps less than 50 %"), "{why}");
         assert!(why.contains("(26 % of it remains)"), "{why}");
-        let (only_margin, _) =
-            decide_again((0.508, 0.377), (0.490, 0.457), 0.02, 0.0, "global model");
+        let (only_margin, _) = decide_again(
+            (0.508, 0.377),
+            (0.490, 0.457),
+            0.02,
+            0.0,
+            "global model",
+            "the field",
+        );
         assert!(only_margin);
-        let (lost, why) = decide_again((1.0, 0.5), (1.0, 0.99), 0.02, 0.5, "rigid motion");
+        let (lost, why) = decide_again(
+            (1.0, 0.5),
+            (1.0, 0.99),
+            0.02,
+            0.5,
+            "rigid motion",
+            "the field",
+        );
         assert!(!lost && why.contains("does not win"), "{why}");
         let bad = AutoSettings {
             regrid_keep: 1.5,

@@ -728,7 +728,8 @@ impl TypedStage for Velocity {
                 let lf = sim
                     .loss(&f.1, &mut held_loss, None)
                     .map_err(|e| fail(p.epochs, e))?;
-                let (mut wins, mut reason) = decide(lg, lf, p.auto.margin, "rigid motion");
+                let (mut wins, mut reason) =
+                    decide(lg, lf, p.auto.margin, "rigid motion", "the field");
                 let mut regrid = None;
                 if wins && p.auto.regrid != 1.0 {
                     // The same object on another grid (`auto.regrid`), the field read at its
@@ -786,6 +787,7 @@ impl TypedStage for Velocity {
                         p.auto.margin,
                         p.auto.regrid_keep,
                         "rigid motion",
+                        "the field",
                     );
                     wins = wins2;
                     reason = format!("{reason}; on a grid of {dx:.4} m cells: {reason2}");
