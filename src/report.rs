@@ -45,7 +45,7 @@ pub struct StageRun {
     pub kind: String,
     /// Cache key for the current parameters.
     pub key: String,
-    /// `cached`, `stale` or `not run`.
+    /// `done` (its result is in the cache for the current parameters), `stale` or `not run`.
     pub state: String,
     /// Why it is stale.
     pub reasons: Vec<String>,
@@ -151,7 +151,7 @@ pub fn collect(
         };
         match &p.state {
             StageState::Cached(m) => {
-                run.state = "cached".into();
+                run.state = "done".into();
                 run.dir = Some(ws.store.entry_dir(&p.name, &p.key));
                 run.wall_s = Some(m.wall_s);
                 run.peak_rss_bytes = Some(m.peak_rss_bytes);

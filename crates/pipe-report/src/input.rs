@@ -39,7 +39,7 @@ pub struct StageRun {
     pub kind: String,
     /// Cache key.
     pub key: String,
-    /// `cached`, `stale` or `not run`.
+    /// `done` (its result is in the cache for the current parameters), `stale` or `not run`.
     pub state: String,
     /// Why it is stale.
     pub reasons: Vec<String>,

@@ -104,7 +104,7 @@ pub struct StageRow {
     pub name: String,
     /// Kind.
     pub kind: String,
-    /// `cached`, `stale` or `not run`.
+    /// `done` (its result is in the cache for the current parameters), `stale` or `not run`.
     pub state: String,
     /// Why stale.
     pub reasons: Vec<String>,
@@ -853,7 +853,7 @@ mod tests {
                 name: "material".into(),
                 kind: "material".into(),
                 key: "k".into(),
-                state: "cached".into(),
+                state: "done".into(),
                 reasons: Vec::new(),
                 dir: Some(dir.clone()),
                 params: Value::Null,

@@ -316,7 +316,7 @@ fn report_json_agrees_with_evaluation_json() {
             s["key"].as_str().unwrap()
         )));
         assert_eq!(s["wall_s"], m["wall_s"], "{}", s["name"]);
-        assert_eq!(s["state"], "cached");
+        assert_eq!(s["state"], "done");
     }
     // Learned parameters' paths and loss curves are there, with the truth where known.
     let paths = scene["parameter_paths"].as_array().unwrap();
@@ -445,7 +445,7 @@ fn several_files_are_reported_side_by_side() {
             .as_array()
             .unwrap()
             .iter()
-            .all(|s| s["state"] == "cached")
+            .all(|s| s["state"] == "done")
     );
     let html = std::fs::read_to_string(d.path("side/report.html")).unwrap();
     assert!(html.contains("grid-template-columns: repeat(2, minmax(0, 1fr))"));
