@@ -119,7 +119,7 @@ def lattice_torus(g, big_r, small_r, h=0.01):
 
 def resampled_torus(g, big_r, small_r, seed):
     """As many uniform random points as `g` inside the torus (radii `big_r`, `small_r`, m) that
-    `g` samples: centre its mean, axis its principal direction of least extent."""
+    `g` samples ([`torus_of`])."""
     inside = torus_of(g, big_r, small_r)
     rng = np.random.default_rng(seed)
     lo, hi = g.min(0) - 0.01, g.max(0) + 0.01
@@ -147,12 +147,13 @@ def main():
         "jittered 1.5 mm": g + rng.normal(0, 0.0015, g.shape),
         "jittered 4 mm": g + np.random.default_rng(0).normal(0, 0.004, g.shape),
     }
-    shape = json.load(open(os.path.join(scene, "gt", "params.json"))).get("shape", {})
+    params = json.load(open(os.path.join(scene, "gt", "params.json")))
+    shape = params.get("shape", {})
     if shape.get("kind") == "torus":
         radii = shape["args"]["R"], shape["args"]["r"]
         for seed in (1, 2):
             cases[f"torus resampled, seed {seed}"] = resampled_torus(g, *radii, seed)
-        h = json.load(open(os.path.join(scene, "gt", "params.json")))["dx"] / 2
+        h = params["dx"] / 2
         for seed in (1, 2, 3):
             cases[f"torus sampled the maker's way, seed {seed}"] = jittered_torus(g, *radii, seed, h)
         cases["torus on the aligned lattice"] = lattice_torus(g, *radii, h)

@@ -23,6 +23,7 @@ is exact and only appearance differs) it also prints the per-frame total `-10 lo
 + 10^(-P/10))` and its mean over the frames.
 
     python3 benches/motion_floor.py SCENE GAUSSIANS.ply [--view 10] [--frame0-psnr 35.06] [--seeds 1 2 ...]
+        [--sampler jittered|uniform]
 
 Needs numpy, scipy and pillow; `pipe` on PATH or in $PIPE. About 20 s a seed.
 """
@@ -162,8 +163,8 @@ def main():
                                         frame_dt=gt["frame_dt"], dx=gt["dx"],
                                         substeps=gt["substeps"]))
         samplings = {}
+        radii = gt["shape"]["args"]["R"], gt["shape"]["args"]["r"]
         for seed in a.seeds:
-            radii = gt["shape"]["args"]["R"], gt["shape"]["args"]["r"]
             x = (jittered_torus(truth0, *radii, seed, h=gt["dx"] / 2) if a.sampler == "jittered"
                  else resampled_torus(truth0, *radii, seed))
             ply = os.path.join(tmp, f"resampled{seed}.ply")
